@@ -6,18 +6,11 @@
 
 The algorithm itself lives in :func:`srdcil.training.train` (shared by every recipe).
 """
-import hydra
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
+from pathlib import Path
 
-from srdcil.training import train
+from srdcil.recipe import hydra_main
 
-
-@hydra.main(version_base="1.3", config_path="config", config_name="sr_dcil_dubins")
-def main(cfg: DictConfig) -> None:
-    result = train(cfg, run_dir=HydraConfig.get().runtime.output_dir)
-    print({k: v for k, v in result.items() if k != "ags_thresholds"})
-
+main = hydra_main("sr_dcil_dubins", Path(__file__).parent / "config")
 
 if __name__ == "__main__":
     main()

@@ -233,12 +233,24 @@ def load_checkpoint(path, *, actor, loss, updater, env) -> dict:
 # the loop
 
 
-def train(cfg: DictConfig, run_dir: str | Path | None = None, extra_env_transforms=None) -> dict:
+def demo_reset_transforms(task: Task, device) -> list:
+    """DCIL-II: each training attempt starts from the demonstrated state where the previous goal was
+    reached, goals sampled by 1/success-rate (``DemoResetTransform``)."""
+    from srdcil.transforms import DemoResetTransform
+
+    demo, gs = task.demo, task.goals
+    full = demo.sim_states if demo.sim_states is not None else demo.states
+    start_idx = torch.cat([torch.zeros(1, dtype=torch.long), gs.demo_indices[:-1].long()])
+    return [DemoResetTransform(full[start_idx].to(device), goals=gs.goals.to(device),
+                               max_steps_per_goal=task.max_steps_per_goal)]
+
+
+def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
     """Run Algorithm 1 with the configuration ``cfg``; returns the final metrics.
 
-    ``extra_env_transforms`` (a callable ``(task, n_envs) -> list[Transform]``) lets a recipe change
-    how training trajectories start (the DCIL-II baseline resets to demonstrated states); the
-    evaluation is always the chained rollout from the single start state.
+    ``cfg.reset_scheme`` is ``single`` (SR-DCIL: every training trajectory starts at s_0) or
+    ``demo_states`` (the DCIL-II baseline: resets to demonstrated states). The evaluation is always
+    the chained rollout from the single start state, so the two are comparable.
     """
     from torchrl.collectors import Collector
     from tqdm.auto import tqdm
@@ -258,7 +270,10 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None, extra_env_transfor
     critic = loss.target_q_value if variant.ags else None
 
     # 2. Training env(s): single reset state + goal sequence (+ AGS); eval env shares the thresholds.
-    extra = list(extra_env_transforms(task, int(cfg.env.n_envs), device)) if extra_env_transforms else []
+    scheme = cfg.get("reset_scheme", "single")
+    if scheme not in ("single", "demo_states"):
+        raise ValueError(f"reset_scheme={scheme!r}: expected 'single' (SR-DCIL) or 'demo_states' (DCIL-II)")
+    extra = demo_reset_transforms(task, device) if scheme == "demo_states" else []
     env = make_env(task, int(cfg.env.n_envs), device, ags=variant.ags, ags_k=int(cfg.ags.k), critic=critic,
                    extra_transforms=extra)
     env.set_seed(int(cfg.seed))

@@ -1,0 +1,326 @@
+"""``GoalSequenceTransform``: the single-reset goal chain of SR-DCIL as a TorchRL env transform.
+
+The transform turns any TorchRL env that exposes an achieved-goal entry into the goal-conditioned
+MDP of SR-DCIL (DESIGN.md §1): it holds the goal table g_0 … g_{N−1}, appends the current goal and
+its index to the observation, computes success and the sparse reward, switches goals, counts the
+per-goal budget and optionally performs Approximate Goal Switching (AGS). It knows nothing about
+the env behind it.
+
+All per-env state (goal index, budget, AGS flag, the recent critic values) lives in the tensordict
+as observation entries, like :class:`torchrl.envs.StepCounter`. Batched envs, partial resets
+(``"_reset"`` masks merged by TorchRL) and collectors therefore work without any Python-side
+bookkeeping. The only state kept in the module is the per-goal AGS threshold table θ, which is a
+registered buffer (``ags_thresholds``, NaN = unset) so that ``state_dict`` checkpoints it.
+
+Semantics of one step, for an env on goal i with budget b (steps left) at time t:
+
+* ``success`` = ‖ag(s_{t+1}) − g_i‖ ≤ radius (:func:`srdcil.rule.goal_success`),
+  ``reward`` = success as float32 (the base env's reward is overwritten).
+* b ← b − 1.
+* AGS (``ags=True``, θ_i set, no success): if Q̄(s_t, g_i, i, a_t) ≥ θ_i then b ← min(b, k) and
+  the env is armed. Re-arming never extends the budget. The cut is applied after this step's
+  decrement, so the switch comes exactly k steps after the first activation (mirroring the
+  threshold, which is the Q value k steps before a real success).
+* success and i < N−1 → switch to i+1; success at i = N−1 → ``terminated``.
+* no success and b = 0: armed and i < N−1 → switch to i+1 (reward 0); otherwise ``truncated``.
+* every switch resets the budget to ``max_steps_per_goal``, disarms AGS and clears the Q history.
+* the base env's own ``terminated`` is kept in ``env_terminated`` and OR-ed into ``terminated``;
+  ``done`` = terminated | truncated | base done.
+
+Threshold learning (``ags=True`` and ``learn_thresholds=True``): the last k critic values of the
+current goal attempt are kept per env in ``ags_q_hist`` (float32 [k], oldest first, NaN = empty).
+On every real success at goal i at step t, θ_i ← max(θ_i, Q_{t−k}). If the attempt is shorter
+than k+1 steps (fewer than k earlier steps on this goal), the oldest Q of the attempt is used
+instead (Q_t itself for a one-step attempt).
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs.transforms import Transform
+
+from srdcil.rule import goal_success
+
+__all__ = ["GoalSequenceTransform"]
+
+Critic = Callable[[TensorDictBase], torch.Tensor]
+
+
+class GoalSequenceTransform(Transform):
+    """Goal sequence, success/reward, switching, per-goal budget and AGS for any TorchRL env.
+
+    Args:
+        goals: goal table ``[N, G]`` (g_0 … g_{N−1}), visited in order.
+        radius: success radius δ (L2 in goal space).
+        max_steps_per_goal: per-goal budget T_max, reset on each goal switch.
+
+    Keyword Args:
+        achieved_goal_key: entry of the base env holding the achieved goal of the state.
+        ags: enable Approximate Goal Switching.
+        ags_k: k, the budget left after AGS activation (and the threshold look-back).
+        critic: callable ``critic(td) -> Q̄ [*B, 1]``; it receives the root tensordict at time t
+            (observation, goal, goal_idx, action, …). Required when ``ags=True`` by the time the
+            env is stepped; it is held by reference (not a submodule), see :meth:`set_critic`.
+        learn_thresholds: update θ on real successes (train env). An eval env typically shares
+            the train env's thresholds with ``learn_thresholds=False``.
+        thresholds: optional ``[N]`` float tensor used *as is* (shared, updated in place) as the
+            threshold table; default: a fresh all-NaN (unset) table.
+        onehot_key: if given, also write the one-hot index ``[N]`` float32 under this key.
+
+    Entries written (root and ``next``): ``goal`` float32 [G], ``goal_idx`` int64 [1],
+    ``goal_budget`` int64 [1], ``ags_armed`` bool [1], ``success`` bool [1],
+    ``env_terminated`` bool [1], ``ags_q_hist`` float32 [k] (only with ``ags`` and
+    ``learn_thresholds``), and ``onehot_key`` if set. ``success`` and ``env_terminated`` are
+    meaningful in ``next``; at the root they hold the previous transition's value (False after a
+    reset). ``("next", "reward")``, ``terminated``, ``truncated`` and ``done`` are overwritten.
+    """
+
+    invertible = False
+
+    def __init__(
+        self,
+        goals: torch.Tensor,
+        radius: float,
+        max_steps_per_goal: int,
+        *,
+        achieved_goal_key="achieved_goal",
+        ags: bool = False,
+        ags_k: int = 2,
+        critic: Critic | None = None,
+        learn_thresholds: bool = True,
+        thresholds: torch.Tensor | None = None,
+        onehot_key: str | None = None,
+    ):
+        goals = torch.as_tensor(goals)
+        if goals.ndim != 2 or goals.shape[0] < 1:
+            raise ValueError(
+                f"GoalSequenceTransform: `goals` must have shape [N, G] with N >= 1, got {tuple(goals.shape)}"
+            )
+        if not radius > 0:
+            raise ValueError(f"GoalSequenceTransform: `radius` must be > 0, got {radius}")
+        if int(max_steps_per_goal) < 1:
+            raise ValueError(
+                f"GoalSequenceTransform: `max_steps_per_goal` must be >= 1, got {max_steps_per_goal}"
+            )
+        if ags and int(ags_k) < 1:
+            raise ValueError(f"GoalSequenceTransform: `ags_k` must be >= 1, got {ags_k}")
+        self.achieved_goal_key = achieved_goal_key
+        self.onehot_key = onehot_key
+        out_keys = ["goal", "goal_idx", "goal_budget", "ags_armed", "success", "env_terminated"]
+        self._learn = bool(ags and learn_thresholds)
+        if self._learn:
+            out_keys.append("ags_q_hist")
+        if onehot_key is not None:
+            out_keys.append(onehot_key)
+        super().__init__(in_keys=[achieved_goal_key], out_keys=out_keys)
+
+        self.register_buffer("goals", goals.to(torch.float32).clone())
+        n = goals.shape[0]
+        if thresholds is None:
+            thresholds = torch.full((n,), float("nan"), dtype=torch.float32, device=goals.device)
+        else:
+            if thresholds.shape != (n,) or not thresholds.is_floating_point():
+                raise ValueError(
+                    f"GoalSequenceTransform: `thresholds` must be a float tensor of shape [{n}] "
+                    f"(one per goal), got {thresholds.dtype} {tuple(thresholds.shape)}"
+                )
+        # Registered as is: a tensor passed in stays shared (in-place updates are seen by all users).
+        self.register_buffer("ags_thresholds", thresholds)
+        self.radius = float(radius)
+        self.max_steps_per_goal = int(max_steps_per_goal)
+        self.ags = bool(ags)
+        self.ags_k = int(ags_k)
+        self.learn_thresholds = bool(learn_thresholds)
+        self.__dict__["_critic"] = critic
+
+    # ------------------------------------------------------------------ public helpers
+    @property
+    def num_goals(self) -> int:
+        return self.goals.shape[0]
+
+    @property
+    def critic(self) -> Critic | None:
+        return self.__dict__["_critic"]
+
+    def set_critic(self, fn: Critic | None) -> None:
+        """Set (or replace) the critic used by AGS; held by reference, outside the module tree."""
+        self.__dict__["_critic"] = fn
+
+    def reset_thresholds(self) -> None:
+        """Unset all AGS thresholds (in place, so a shared table is cleared for every user)."""
+        self.ags_thresholds.fill_(float("nan"))
+
+    # ------------------------------------------------------------------ specs
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        bs, dev = observation_spec.shape, observation_spec.device
+        n, g = self.goals.shape
+        observation_spec["goal"] = Unbounded(shape=(*bs, g), dtype=torch.float32, device=dev)
+        observation_spec["goal_idx"] = Bounded(
+            0, n - 1, shape=(*bs, 1), dtype=torch.int64, device=dev
+        )
+        observation_spec["goal_budget"] = Bounded(
+            0, self.max_steps_per_goal, shape=(*bs, 1), dtype=torch.int64, device=dev
+        )
+        for key in ("ags_armed", "success", "env_terminated"):
+            observation_spec[key] = Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=dev)
+        if self._learn:
+            observation_spec["ags_q_hist"] = Unbounded(
+                shape=(*bs, self.ags_k), dtype=torch.float32, device=dev
+            )
+        if self.onehot_key is not None:
+            observation_spec[self.onehot_key] = Bounded(
+                0.0, 1.0, shape=(*bs, n), dtype=torch.float32, device=dev
+            )
+        return observation_spec
+
+    def transform_reward_spec(self, reward_spec: Composite) -> Composite:
+        # Called with the full (Composite) reward spec; the reward is the success indicator.
+        reward_spec["reward"] = Unbounded(
+            shape=(*reward_spec.shape, 1), dtype=torch.float32, device=reward_spec.device
+        )
+        return reward_spec
+
+    def transform_done_spec(self, done_spec: Composite) -> Composite:
+        if "truncated" not in done_spec.keys():
+            done_spec["truncated"] = done_spec["done"].clone()
+        if "terminated" not in done_spec.keys():
+            done_spec["terminated"] = done_spec["done"].clone()
+        return done_spec
+
+    # ------------------------------------------------------------------ helpers
+    def _onehot(self, idx: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.one_hot(idx.squeeze(-1), self.num_goals).to(torch.float32)
+
+    # ------------------------------------------------------------------ reset
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        # Initial values for *all* envs; TorchRL merges them only where "_reset" is True.
+        bs, dev = tensordict_reset.batch_size, self.goals.device
+        idx = torch.zeros((*bs, 1), dtype=torch.int64, device=dev)
+        false = torch.zeros((*bs, 1), dtype=torch.bool, device=dev)
+        out = {
+            "goal_idx": idx,
+            "goal": self.goals[0].expand(*bs, -1).clone(),
+            "goal_budget": torch.full((*bs, 1), self.max_steps_per_goal, dtype=torch.int64, device=dev),
+            "ags_armed": false,
+            "success": false.clone(),
+            "env_terminated": false.clone(),
+        }
+        if self._learn:
+            out["ags_q_hist"] = torch.full((*bs, self.ags_k), float("nan"), dtype=torch.float32, device=dev)
+        if self.onehot_key is not None:
+            out[self.onehot_key] = self._onehot(idx)
+        tensordict_reset.update(out)
+        if "truncated" not in tensordict_reset.keys():
+            tensordict_reset.set("truncated", false.clone())
+        if "terminated" not in tensordict_reset.keys():
+            tensordict_reset.set("terminated", false.clone())
+        return tensordict_reset
+
+    # ------------------------------------------------------------------ step
+    def _critic_values(self, tensordict: TensorDictBase) -> torch.Tensor:
+        critic = self.__dict__["_critic"]
+        if critic is None:
+            raise RuntimeError(
+                "GoalSequenceTransform (transforms/goal_sequence.py): ags=True but no critic is set; "
+                "pass `critic=` or call `set_critic(fn)` with fn(td) -> Q [*B, 1] before stepping."
+            )
+        with torch.no_grad():
+            q = critic(tensordict)
+        q = q.detach().to(torch.float32)
+        return q.reshape(*tensordict.batch_size, 1)
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        goals = self.goals
+        n = goals.shape[0]
+        idx = tensordict.get("goal_idx")
+        goal = tensordict.get("goal")
+        budget = tensordict.get("goal_budget") - 1
+        armed = tensordict.get("ags_armed")
+
+        success = goal_success(next_tensordict.get(self.achieved_goal_key), goal, self.radius)
+        last = idx >= n - 1
+
+        hist = None
+        if self.ags:
+            theta = self.ags_thresholds
+            need_q = self._learn or not bool(torch.isnan(theta).all())
+            if need_q:
+                q = self._critic_values(tensordict)
+                theta_i = theta[idx.squeeze(-1)].unsqueeze(-1)
+                # NaN θ compares False: AGS inactive for goals never reached.
+                activate = (q >= theta_i) & ~success
+                armed = armed | activate
+                budget = torch.where(activate, budget.clamp_max(self.ags_k), budget)
+                if self._learn:
+                    hist = tensordict.get("ags_q_hist")
+                    if bool(success.any()):
+                        self._update_thresholds(idx, success, hist, q)
+                    hist = torch.cat([hist[..., 1:], q], dim=-1)
+
+        spent = ~success & (budget <= 0)
+        switch = (success | (spent & armed)) & ~last
+        terminated_goal = success & last
+        truncated = spent & ~switch
+
+        new_idx = torch.where(switch, idx + 1, idx)
+        new_goal = torch.where(switch, goals[new_idx.squeeze(-1)], goal)
+        budget = torch.where(switch, self.max_steps_per_goal, budget)
+        armed = armed & ~switch
+
+        env_term = next_tensordict.get("terminated", None)
+        base_done = next_tensordict.get("done", None)
+        if env_term is None:
+            env_term = base_done if base_done is not None else torch.zeros_like(success)
+        terminated = terminated_goal | env_term
+        base_trunc = next_tensordict.get("truncated", None)
+        if base_trunc is not None:
+            truncated = truncated | base_trunc
+        done = terminated | truncated
+        if base_done is not None:
+            done = done | base_done
+
+        out = {
+            "reward": success.to(torch.float32),
+            "success": success,
+            "env_terminated": env_term,
+            "goal_idx": new_idx,
+            "goal": new_goal,
+            "goal_budget": budget,
+            "ags_armed": armed,
+            "terminated": terminated,
+            "truncated": truncated,
+            "done": done,
+        }
+        if hist is not None:
+            out["ags_q_hist"] = torch.where(switch, float("nan"), hist)
+        elif self._learn:
+            out["ags_q_hist"] = tensordict.get("ags_q_hist")
+        if self.onehot_key is not None:
+            out[self.onehot_key] = self._onehot(new_idx)
+        next_tensordict.update(out)
+        return next_tensordict
+
+    def _update_thresholds(
+        self, idx: torch.Tensor, success: torch.Tensor, hist: torch.Tensor, q: torch.Tensor
+    ) -> None:
+        """θ_i ← max(θ_i, Q_{t−k}) for every env that succeeded at goal i (vectorised, in place)."""
+        cand = torch.cat([hist, q], dim=-1)  # [*B, k+1]: Q_{t-k} … Q_t, empty slots (NaN) first
+        n_empty = torch.isnan(hist).sum(-1, keepdim=True)
+        q_back = cand.gather(-1, n_empty).reshape(-1)  # oldest Q of the attempt, at most k back
+        ok = success.reshape(-1)
+        theta = self.ags_thresholds
+        neg_inf = torch.tensor(float("-inf"), dtype=theta.dtype, device=theta.device)
+        work = torch.where(torch.isnan(theta), neg_inf, theta)
+        vals = torch.where(ok, q_back.to(theta.dtype), neg_inf)
+        work = work.scatter_reduce(0, idx.reshape(-1), vals, reduce="amax", include_self=True)
+        theta.copy_(torch.where(torch.isinf(work) & (work < 0), float("nan"), work))
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(num_goals={self.num_goals}, radius={self.radius}, "
+            f"max_steps_per_goal={self.max_steps_per_goal}, ags={self.ags}, ags_k={self.ags_k}, "
+            f"learn_thresholds={self.learn_thresholds})"
+        )
