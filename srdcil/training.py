@@ -318,6 +318,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
     last_eval: dict = {}
     t0 = time.perf_counter()
     t_update = 0.0
+    t_warm, f_warm = None, frames  # clock and env steps when the first updates ran (end of warm-up)
     pbar = tqdm(total=total, initial=frames, unit="step", dynamic_ncols=True, disable=not cfg.get("progress", True))
 
     def do_eval():
@@ -349,6 +350,8 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
             k = int(update_credit)
             update_credit -= k
             tu = time.perf_counter()
+            if t_warm is None:
+                t_warm, f_warm = tu, frames - data.numel()
             losses = None
             for _ in range(k):
                 out = updater.step(replay.sample())
@@ -375,6 +378,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
                 f.write(json.dumps({"env_steps": frames, **log}) + "\n")
         if cfg.get("stop_on_chain_success", False) and first_chain is not None:
             break
+    t_end = time.perf_counter()
     collector.shutdown()
     pbar.close()
     final = do_eval()
@@ -389,6 +393,8 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
         "wall_s": wall,
         "env_steps_per_s": (frames - start_frames) / wall,
         "updates_per_s_in_loop": n_updates / t_update if t_update > 0 else math.nan,
+        # the training loop proper (collection + replay + updates), warm-up excluded, final eval excluded
+        "env_steps_per_s_after_warmup": ((frames - f_warm) / (t_end - t_warm)) if t_warm else math.nan,
         "ags_thresholds": goal_transform(env).ags_thresholds.tolist(),
     }
     with open(run_dir / "result.json", "w") as f:

@@ -1,0 +1,13 @@
+"""Helpers shared by the benchmark scripts: compose a recipe config without running hydra's CLI."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from hydra import compose, initialize_config_dir
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "recipes" / "config"
+
+
+def recipe_config(name: str, overrides: list[str] = ()):
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        return compose(config_name=name, overrides=list(overrides))
