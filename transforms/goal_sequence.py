@@ -61,13 +61,16 @@ class GoalSequenceTransform(Transform):
         achieved_goal_key: entry of the base env holding the achieved goal of the state.
         ags: enable Approximate Goal Switching.
         ags_k: k, the budget left after AGS activation (and the threshold look-back).
-        critic: callable ``critic(td) -> Q̄ [*B, 1]``; it receives the root tensordict at time t
-            (observation, goal, goal_idx, action, …). Required when ``ags=True`` by the time the
-            env is stepped; it is held by reference (not a submodule), see :meth:`set_critic`.
+        critic: callable ``critic(td) -> Q̄ [*B, 1]``; it receives (a shallow copy of) the root
+            tensordict at time t (observation, goal, goal_idx, action, …) and is called under
+            ``torch.no_grad()``. A TensorDictModule returning a tensordict is also accepted: its
+            ``"state_action_value"`` entry is read. Required when ``ags=True`` by the time the env
+            is stepped; it is held by reference (not a submodule), see :meth:`set_critic`.
         learn_thresholds: update θ on real successes (train env). An eval env typically shares
             the train env's thresholds with ``learn_thresholds=False``.
         thresholds: optional ``[N]`` float tensor used *as is* (shared, updated in place) as the
-            threshold table; default: a fresh all-NaN (unset) table.
+            threshold table; default: a fresh all-NaN (unset) table. Sharing holds as long as
+            the transform is not moved to another device (``.to()`` would copy the buffer).
         onehot_key: if given, also write the one-hot index ``[N]`` float32 under this key.
 
     Entries written (root and ``next``): ``goal`` float32 [G], ``goal_idx`` int64 [1],
@@ -76,6 +79,9 @@ class GoalSequenceTransform(Transform):
     ``learn_thresholds``), and ``onehot_key`` if set. ``success`` and ``env_terminated`` are
     meaningful in ``next``; at the root they hold the previous transition's value (False after a
     reset). ``("next", "reward")``, ``terminated``, ``truncated`` and ``done`` are overwritten.
+
+    With AGS, put the transform around a batched env (``TransformedEnv(SerialEnv/ParallelEnv(...),
+    T)``) so that it runs in the learner's process and sees the live critic.
     """
 
     invertible = False
@@ -229,52 +235,54 @@ class GoalSequenceTransform(Transform):
             )
         with torch.no_grad():
             q = critic(tensordict)
-        q = q.detach().to(torch.float32)
-        return q.reshape(*tensordict.batch_size, 1)
+        if isinstance(q, TensorDictBase):  # a TensorDictModule Q-network (e.g. a ValueOperator)
+            q = q.get("state_action_value")
+        return q.to(torch.float32).reshape(*tensordict.batch_size, 1)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        # Written for few small-tensor ops per step: the collector runs this on every env step.
         goals = self.goals
-        n = goals.shape[0]
         idx = tensordict.get("goal_idx")
         goal = tensordict.get("goal")
-        budget = tensordict.get("goal_budget") - 1
+        budget = tensordict.get("goal_budget") - 1  # fresh tensor: safe to modify in place below
         armed = tensordict.get("ags_armed")
 
+        # success is judged against g_i, the goal *before* any switch
         success = goal_success(next_tensordict.get(self.achieved_goal_key), goal, self.radius)
-        last = idx >= n - 1
+        not_success = ~success
+        last = idx >= goals.shape[0] - 1
 
         hist = None
         if self.ags:
             theta = self.ags_thresholds
-            need_q = self._learn or not bool(torch.isnan(theta).all())
-            if need_q:
+            if self._learn or not bool(torch.isnan(theta).all()):
                 q = self._critic_values(tensordict)
-                theta_i = theta[idx.squeeze(-1)].unsqueeze(-1)
-                # NaN θ compares False: AGS inactive for goals never reached.
-                activate = (q >= theta_i) & ~success
+                theta_i = theta.index_select(0, idx.reshape(-1)).reshape(q.shape)
+                # a NaN (unset) θ_i compares False: AGS is inactive for goals never reached
+                activate = (q >= theta_i) & not_success
                 armed = armed | activate
+                # cut to k *after* this step's decrement; min() so re-arming never extends it
                 budget = torch.where(activate, budget.clamp_max(self.ags_k), budget)
                 if self._learn:
                     hist = tensordict.get("ags_q_hist")
-                    if bool(success.any()):
+                    if success.device.type != "cpu" or bool(success.any()):
                         self._update_thresholds(idx, success, hist, q)
                     hist = torch.cat([hist[..., 1:], q], dim=-1)
 
-        spent = ~success & (budget <= 0)
+        spent = (budget <= 0) & not_success
         switch = (success | (spent & armed)) & ~last
-        terminated_goal = success & last
         truncated = spent & ~switch
 
-        new_idx = torch.where(switch, idx + 1, idx)
-        new_goal = torch.where(switch, goals[new_idx.squeeze(-1)], goal)
-        budget = torch.where(switch, self.max_steps_per_goal, budget)
+        new_idx = idx + switch  # int64 + bool
+        new_goal = goals.index_select(0, new_idx.reshape(-1)).reshape(goal.shape)
+        budget.masked_fill_(switch, self.max_steps_per_goal)
         armed = armed & ~switch
 
-        env_term = next_tensordict.get("terminated", None)
         base_done = next_tensordict.get("done", None)
+        env_term = next_tensordict.get("terminated", base_done)
         if env_term is None:
-            env_term = base_done if base_done is not None else torch.zeros_like(success)
-        terminated = terminated_goal | env_term
+            env_term = torch.zeros_like(success)
+        terminated = (success & last) | env_term
         base_trunc = next_tensordict.get("truncated", None)
         if base_trunc is not None:
             truncated = truncated | base_trunc
@@ -295,9 +303,7 @@ class GoalSequenceTransform(Transform):
             "done": done,
         }
         if hist is not None:
-            out["ags_q_hist"] = torch.where(switch, float("nan"), hist)
-        elif self._learn:
-            out["ags_q_hist"] = tensordict.get("ags_q_hist")
+            out["ags_q_hist"] = hist.masked_fill_(switch, float("nan"))  # new attempt: empty
         if self.onehot_key is not None:
             out[self.onehot_key] = self._onehot(new_idx)
         next_tensordict.update(out)
