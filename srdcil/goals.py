@@ -184,7 +184,8 @@ def demo_returns(reward: torch.Tensor, terminated: torch.Tensor, gamma: float) -
 
 
 def demo_transitions(demo: Demonstration, goal_seq: GoalSequence, gamma: float) -> TensorDict:
-    """Demo-Buffer rows, one per demo transition t -> t+1: ``TensorDict[T]``.
+    """Demo-Buffer rows, one per demo transition t -> t+1: ``TensorDict[T]`` (T' < T rows when
+    ``goal_seq`` came from ``extract_goals(..., max_demo_steps=K)``: only the K-1 steps it covers).
 
     Root: ``observation``, ``achieved_goal``, ``goal`` (g of row t), ``goal_idx`` (int64 [1]),
     ``goal_budget`` (int64, 0), ``ags_armed`` (False), ``action``, ``is_demo`` (True),

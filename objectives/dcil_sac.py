@@ -1,0 +1,648 @@
+"""DCIL SAC loss: twin-Q MSBE with the DCIL target, optional SAC-v1 V network with Value Cloning.
+
+Semantics (DESIGN.md §1, authors' SAC in research/dcil_reference.md §3.3-§4)
+---------------------------------------------------------------------------
+Inputs (batch ``[*B]``): ``observation``, ``goal``, ``goal_idx``, ``action``; under ``"next"``:
+``observation``, ``goal``, ``goal_idx`` (the goal *after* switching), ``reward``, ``terminated``;
+``is_demo`` and ``demo_return`` when a V network is used. ``s'`` is the next observation with the
+next goal / index, so a success on a non-last goal bootstraps on ``(s', g_{i+1}, i+1)``.
+
+Without V (``vanilla`` / ``db`` variants)::
+
+    a' ~ pi(.|s'),  y = r + gamma (1 - terminated) clip(min_j Qbar_j(s', a') [- alpha log pi(a'|s')])
+    loss_qvalue = mean_rows sum_j (Q_j(s, a) - y)^2          (authors' form: no 1/2)
+
+Both Q-nets see the whole batch (no SAC-v1 half split). The entropy term in the target is only used
+with ``entropy_backup=True`` (the authors have it off). ``clip`` is ``target_clip`` ((0, 5) by
+default, ``None`` for no clipping).
+
+With V (``vc`` variants, SAC-v1)::
+
+    y_Q = r + gamma (1 - terminated) clip(Vbar(s'))
+    V target, training rows (is_demo False):  min_j Q_j(s, a~) - alpha log pi(a~|s),  a~ ~ pi(.|s)
+              (current Q, detached; a~ is the same sample as in the actor loss)
+    V target, demo rows (is_demo True):       demo_return (V_demo)          -> value cloning
+
+Demo rows of a VC batch are *states only*: they enter ``loss_value_cloning`` and nothing else (the
+Q loss and, unless ``actor_on_demo_states=True``, the actor loss use the training rows only).
+**Normalisation**: each loss is a mean over its own rows: ``loss_value`` = mean over training rows,
+``loss_value_cloning`` = ``vc_coef`` x mean over demo rows (0 when the batch has none),
+``loss_qvalue`` / ``loss_actor`` = mean over the rows they use. Every reduction is a masked sum
+divided by a count, so the result does not depend on the order of the rows (and no boolean
+indexing, so it stays compile / CUDA-graph friendly). With ``value_cloning=False`` the V network is
+plain SAC-v1: every row is a training row and ``is_demo`` is not read.
+
+Actor: ``loss_actor = mean(alpha log pi(a~|s) - min_j Q_j(s, a~))`` with the Q parameters detached,
+so the actor loss sends gradient only into the actor. ``loss_alpha = -mean(log_alpha (log pi +
+target_entropy))`` when ``learn_alpha``. Every ``loss_*`` entry sends gradient only into its own
+network (Q: critic; value / value_cloning: V; actor: actor; alpha: log_alpha), so one backward on
+the sum is correct.
+
+Update step
+-----------
+Recommended (joint, one backward; what :class:`DCILUpdater` does by default)::
+
+    loss_td = loss(batch)
+    sum(v for k, v in loss_td.items() if k.startswith("loss_")).backward()
+    optim.step(); optim.zero_grad()
+    updater.step()            # torchrl.objectives.SoftUpdate(loss, tau=0.005)
+
+The authors instead do: critic step, Polyak update, then the actor step with the *updated* critic.
+The joint step evaluates the actor loss with the critic of before the step (a one-step lag, the
+usual torchrl / SOTA SAC practice). ``DCILUpdater(mode="sequential")`` reproduces the authors' order
+(at the cost of a second actor pass).
+
+Speed: the loss calls the core networks directly on tensors (one twin-Q module call per Q evaluation
+on a shared input, target and detached weights passed as tensor lists, the TanhNormal sample and its log
+probability computed in closed form from the pre-tanh sample), so one update costs about what a
+hand-written PyTorch SAC update costs (``benchmarks/bench_updates.py``). Networks that are not the
+:mod:`srdcil.networks` ones go through a generic TorchRL path (``get_dist`` / ``to_module``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
+from torch import nn
+from torch.nn import functional as F
+from torchrl.objectives import LossModule
+
+from srdcil.networks import GaussianPolicyNet, GoalConditionedMLP, TwinQ
+
+__all__ = ["DCILSACLoss", "DCILUpdater"]
+
+_LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
+_LOG2 = math.log(2.0)
+
+
+def _next(key: NestedKey) -> tuple:
+    return ("next", key) if isinstance(key, str) else ("next", *key)
+
+
+def _find_core(module: nn.Module, cls) -> tuple[str, nn.Module] | tuple[None, None]:
+    for name, sub in module.named_modules():
+        if isinstance(sub, cls):
+            return name, sub
+    return None, None
+
+
+class _Rows:
+    """Row weights of one batch: every reduction is ``sum(x * w)`` with ``w = mask / count``.
+
+    ``demo`` is None (all rows are training rows) or a bool tensor shaped like the per-row losses.
+    Means over an empty selection are 0. Sums make the result independent of the row order.
+    """
+
+    __slots__ = ("demo", "train", "w_train", "w_demo", "w_actor")
+
+    def __init__(self, demo: torch.Tensor | None, like: torch.Tensor, actor_on_demo: bool):
+        self.demo = demo
+        if demo is None:
+            self.train = self.w_train = self.w_demo = self.w_actor = None
+            return
+        d = demo.to(like.dtype)
+        t = 1.0 - d
+        self.train = ~demo
+        self.w_train = t / t.sum().clamp_min(1.0)
+        self.w_demo = d / d.sum().clamp_min(1.0)
+        self.w_actor = None if actor_on_demo else self.w_train
+
+    def train_mean(self, x: torch.Tensor, guard: bool = False) -> torch.Tensor:
+        if self.w_train is None:
+            return x.mean()
+        if guard:
+            x = torch.where(self.train, x, torch.zeros((), dtype=x.dtype, device=x.device))
+        return (x * self.w_train).sum()
+
+    def demo_mean(self, x: torch.Tensor) -> torch.Tensor:
+        return (x * self.w_demo).sum()
+
+    def actor_mean(self, x: torch.Tensor) -> torch.Tensor:
+        return x.mean() if self.w_actor is None else (x * self.w_actor).sum()
+
+
+class DCILSACLoss(LossModule):
+    """Twin-Q SAC loss with the DCIL target and optional SAC-v1 value network with Value Cloning.
+
+    Args:
+        actor: ``ProbabilisticActor`` (TanhNormal) reading observation / goal / goal_idx
+            (:func:`srdcil.networks.make_actor`).
+        qvalue: twin Q ``TensorDictModule`` (:func:`srdcil.networks.make_qvalue`), output
+            ``[*B, E, 1]``.
+        value: optional ``V(s, g, i)`` module (:func:`srdcil.networks.make_value`); selects SAC-v1.
+
+    Keyword Args:
+        gamma (float): discount (0.9).
+        alpha (float): initial / fixed entropy temperature (1e-3).
+        learn_alpha (bool): learn ``log_alpha`` (adds ``loss_alpha``). Default False (authors).
+        target_entropy: ``"auto"`` = ``-action_dim``, or a float.
+        target_clip: ``(low, high)`` clip of the bootstrapped value, or None. Default (0, 5).
+        entropy_backup (bool): subtract ``alpha log pi(a'|s')`` in the Q target (no-V mode only).
+        vc_coef (float): weight of ``loss_value_cloning``.
+        value_cloning (bool): with a V network, regress V on ``demo_return`` at demo rows.
+        actor_on_demo_states (bool): VC mode: also train the actor at the demo states.
+
+    Output (TensorDict, batch ``[]``): ``loss_qvalue``, ``loss_actor``, [``loss_alpha``],
+    [``loss_value``, ``loss_value_cloning``], and detached ``alpha``, ``entropy``, ``q_mean``,
+    ``target_mean``.
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable keys. ``reward`` and ``terminated`` are read under ``"next"``, as are the
+        next observation / goal / goal_idx."""
+
+        observation: NestedKey = "observation"
+        goal: NestedKey = "goal"
+        goal_idx: NestedKey = "goal_idx"
+        action: NestedKey = "action"
+        reward: NestedKey = "reward"
+        terminated: NestedKey = "terminated"
+        done: NestedKey = "done"
+        is_demo: NestedKey = "is_demo"
+        demo_return: NestedKey = "demo_return"
+        state_action_value: NestedKey = "state_action_value"
+        state_value: NestedKey = "state_value"
+        action_log_prob: NestedKey = "action_log_prob"
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+
+    actor_network: TensorDictModule
+    actor_network_params: TensorDict
+    target_actor_network_params: TensorDict
+    qvalue_network: TensorDictModule
+    qvalue_network_params: TensorDict
+    target_qvalue_network_params: TensorDict
+    value_network: TensorDictModule | None
+    value_network_params: TensorDict
+    target_value_network_params: TensorDict
+
+    def __init__(
+        self,
+        actor: TensorDictModule,
+        qvalue: TensorDictModule,
+        value: TensorDictModule | None = None,
+        *,
+        gamma: float = 0.9,
+        alpha: float = 1e-3,
+        learn_alpha: bool = False,
+        target_entropy: float | str = "auto",
+        target_clip: tuple[float, float] | None = (0.0, 5.0),
+        entropy_backup: bool = False,
+        vc_coef: float = 1.0,
+        value_cloning: bool = True,
+        actor_on_demo_states: bool = False,
+    ):
+        super().__init__()
+        self.convert_to_functional(actor, "actor_network", create_target_params=False)
+        self.convert_to_functional(qvalue, "qvalue_network", create_target_params=True)
+        self.has_value = value is not None
+        if value is not None:
+            self.convert_to_functional(value, "value_network", create_target_params=True)
+        else:
+            self.value_network = None
+        self.gamma = float(gamma)
+        self.learn_alpha = bool(learn_alpha)
+        self.entropy_backup = bool(entropy_backup)
+        self.vc_coef = float(vc_coef)
+        self.value_cloning = bool(value_cloning) and self.has_value
+        self.actor_on_demo_states = bool(actor_on_demo_states)
+        if target_clip is not None:
+            lo, hi = float(target_clip[0]), float(target_clip[1])
+            if not lo < hi:
+                raise ValueError(
+                    f"DCILSACLoss: target_clip must be (low, high) with low < high, got {target_clip}"
+                )
+            target_clip = (lo, hi)
+        self.target_clip = target_clip
+        if alpha <= 0:
+            raise ValueError(f"DCILSACLoss: alpha must be > 0, got {alpha}")
+        log_alpha = torch.tensor(math.log(alpha))
+        if self.learn_alpha:
+            self.log_alpha = nn.Parameter(log_alpha)
+        else:
+            self.register_buffer("log_alpha", log_alpha)
+
+        # fast paths: our own core networks, called on tensors
+        _, self._actor_core = _find_core(actor, GaussianPolicyNet)
+        self._q_prefix, self._q_core = _find_core(qvalue, TwinQ)
+        if value is not None:
+            self._v_prefix, v_core = _find_core(value, GoalConditionedMLP)
+            self._v_core = v_core if (v_core is not None and v_core.ensemble_size is None) else None
+        else:
+            self._v_prefix, self._v_core = None, None
+        # keep the core modules out of the nn.Module registry (their params live in *_params)
+        for name in ("_actor_core", "_q_core", "_v_core"):
+            core = getattr(self, name)
+            self._modules.pop(name, None)
+            self.__dict__[name] = core
+
+        action_dim = self._infer_action_dim(actor)
+        if target_entropy == "auto":
+            if action_dim is None:
+                raise ValueError("DCILSACLoss: cannot infer the action dimension; pass target_entropy=")
+            target_entropy = -float(action_dim)
+        self.register_buffer("target_entropy", torch.tensor(float(target_entropy)))
+
+    def _apply(self, fn, *args, **kwargs):
+        # ``loss.to(device / dtype)`` moves the ``*_params`` TensorDicts; parameters keep their
+        # identity (so the stateful modules follow) but buffers (the input normalisation) are new
+        # tensors: point the stateful modules, which the fast path calls directly, at them.
+        out = super()._apply(fn, *args, **kwargs)
+        for net in ("actor_network", "qvalue_network", "value_network"):
+            params = self._modules.get(net + "_params")
+            module = self.__dict__.get(net)
+            if params is not None and module is not None:
+                params.to_module(module)
+        return out
+
+    @staticmethod
+    def _infer_action_dim(actor) -> int | None:
+        _, core = _find_core(actor, GaussianPolicyNet)
+        if core is not None:
+            return core.action_dim
+        spec = getattr(actor, "spec", None)
+        try:
+            return int(spec["action"].shape[-1])
+        except Exception:  # noqa: BLE001
+            return None
+
+    # ------------------------------------------------------------------ keys
+    @property
+    def in_keys(self):
+        k = self.tensor_keys
+        keys = [k.observation, k.goal, k.goal_idx, k.action,
+                _next(k.observation), _next(k.goal), _next(k.goal_idx),
+                _next(k.reward), _next(k.terminated)]
+        if self.value_cloning:
+            keys += [k.is_demo, k.demo_return]
+        return keys
+
+    @in_keys.setter
+    def in_keys(self, values):  # LossModule base may try to set it; keys come from tensor_keys
+        pass
+
+    @property
+    def out_keys(self):
+        keys = ["loss_qvalue", "loss_actor"]
+        if self.learn_alpha:
+            keys.append("loss_alpha")
+        if self.has_value:
+            keys.append("loss_value")
+            if self.value_cloning:
+                keys.append("loss_value_cloning")
+        return keys + ["alpha", "entropy", "q_mean", "target_mean"]
+
+    @out_keys.setter
+    def out_keys(self, values):
+        pass
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    # ------------------------------------------------------------------ parameter lists
+    def _param_list(self, which: str, net: str) -> list[torch.Tensor]:
+        """Flat parameter list of a core network in ``named_parameters()`` order.
+
+        ``which``: "live" (the module's own parameters), "detached", or "target" (the loss's
+        ``target_<net>_network_params``, updated in place by ``SoftUpdate``).
+        """
+        core = self._q_core if net == "q" else self._v_core
+        if which == "live":
+            return None
+        if which == "detached":
+            return [p.detach() for p in core.parameters()]
+        cache = self.__dict__.get("_cache_target_lists")
+        if cache is None:
+            cache = self.__dict__["_cache_target_lists"] = {}
+        lst = cache.get(net)
+        if lst is None:
+            prefix = self._q_prefix if net == "q" else self._v_prefix
+            td = self.target_qvalue_network_params if net == "q" else self.target_value_network_params
+            flat = td.flatten_keys(".")
+            pre = prefix + "." if prefix else ""
+            lst = cache[net] = [flat.get(pre + name) for name, _ in core.named_parameters()]
+        return lst
+
+    # ------------------------------------------------------------------ network calls
+    def _sample_noise(self, loc: torch.Tensor) -> torch.Tensor:
+        """Standard normal noise of the TanhNormal reparametrisation (a hook for tests)."""
+        return torch.randn_like(loc)
+
+    def _actor_sample(self, obs, goal, idx, td=None, prefix=None):
+        """``a ~ pi(.|s)`` (reparametrised) and ``log pi(a|s)`` ``[*B, 1]``."""
+        if self._actor_core is not None:
+            loc, scale = self._actor_core(obs, goal, idx)
+            eps = self._sample_noise(loc)
+            u = loc + scale * eps
+            a = torch.tanh(u)
+            # log N(u; loc, scale) - log|d tanh(u)/du|, from the pre-tanh sample (exact Jacobian)
+            logp = (-0.5 * eps.pow(2) - scale.log() - _LOG_SQRT_2PI
+                    - 2.0 * (_LOG2 - u - F.softplus(-2.0 * u))).sum(-1, keepdim=True)
+            return a, logp
+        k = self.tensor_keys
+        sub = TensorDict(
+            {k.observation: obs, k.goal: goal, k.goal_idx: idx}, batch_size=obs.shape[:-1]
+        )
+        dist = self.actor_network.get_dist(sub)
+        a, logp = dist.rsample_and_log_prob()
+        return a, logp.unsqueeze(-1) if logp.dim() < a.dim() else logp
+
+    def _q_all(self, obs, goal, idx, act, which: str) -> torch.Tensor:
+        """All Q members, ensemble first: ``[E, *B, 1]``."""
+        if self._q_core is not None:
+            return self._q_core.q_all(obs, goal, idx, act, self._param_list(which, "q"))
+        k = self.tensor_keys
+        sub = TensorDict(
+            {k.observation: obs, k.goal: goal, k.goal_idx: idx, k.action: act}, batch_size=obs.shape[:-1]
+        )
+        params = {"live": self.qvalue_network_params, "detached": self.qvalue_network_params.detach(),
+                  "target": self.target_qvalue_network_params}[which]
+        with params.to_module(self.qvalue_network):
+            q = self.qvalue_network(sub).get(k.state_action_value)
+        return q.movedim(-2, 0)
+
+    def _v(self, obs, goal, idx, which: str) -> torch.Tensor:
+        if self._v_core is not None:
+            return self._v_core(obs, goal, idx, params=self._param_list(which, "v"))
+        k = self.tensor_keys
+        sub = TensorDict({k.observation: obs, k.goal: goal, k.goal_idx: idx}, batch_size=obs.shape[:-1])
+        params = self.value_network_params if which == "live" else self.target_value_network_params
+        with params.to_module(self.value_network):
+            return self.value_network(sub).get(k.state_value)
+
+    # ------------------------------------------------------------------ pieces
+    @property
+    def alpha(self) -> torch.Tensor:
+        return self.log_alpha.detach().exp()
+
+    def _clip(self, x):
+        if self.target_clip is None:
+            return x
+        return x.clamp(self.target_clip[0], self.target_clip[1])
+
+    def _read(self, td: TensorDictBase):
+        k = self.tensor_keys
+        get = td.get
+        return (get(k.observation), get(k.goal), get(k.goal_idx),
+                get(_next(k.observation)), get(_next(k.goal)), get(_next(k.goal_idx)))
+
+    def _rows(self, td: TensorDictBase, like: torch.Tensor) -> "_Rows":
+        """Row selection of this batch (all rows unless VC mode with an ``is_demo`` entry)."""
+        if not self.value_cloning:
+            return _Rows(None, like, self.actor_on_demo_states)
+        m = td.get(self.tensor_keys.is_demo, None)
+        if m is None:
+            return _Rows(None, like, self.actor_on_demo_states)
+        m = m.bool()
+        return _Rows(m if m.shape == like.shape else m.reshape(like.shape), like, self.actor_on_demo_states)
+
+    @torch.no_grad()
+    def compute_target(self, td: TensorDictBase, alpha: torch.Tensor | None = None) -> torch.Tensor:
+        """The Q-learning target ``y`` ``[*B, 1]`` (no gradient)."""
+        k = self.tensor_keys
+        _, _, _, nobs, ngoal, nidx = self._read(td)
+        r = td.get(_next(k.reward)).to(nobs.dtype)
+        term = td.get(_next(k.terminated))
+        if self.has_value:
+            boot = self._v(nobs, ngoal, nidx, "target")
+        else:
+            a2, logp2 = self._actor_sample(nobs, ngoal, nidx)
+            boot = self._q_all(nobs, ngoal, nidx, a2, "target").amin(0)
+            if self.entropy_backup:
+                boot = boot - (self.alpha if alpha is None else alpha) * logp2
+        boot = self._clip(boot)
+        return r + self.gamma * (~term.bool()).to(boot.dtype) * boot
+
+    @torch.no_grad()
+    def target_q_value(self, td: TensorDictBase) -> torch.Tensor:
+        """``min_j Qbar_j(s, a)`` ``[*B, 1]`` with the target parameters (the AGS critic)."""
+        k = self.tensor_keys
+        return self._q_all(td.get(k.observation), td.get(k.goal), td.get(k.goal_idx),
+                           td.get(k.action), "target").amin(0)
+
+    def _critic_terms(self, td, obs, goal, idx, act, logp_pi, q_pi, rows, alpha, out):
+        y = self.compute_target(td, alpha)
+        q = self._q_all(obs, goal, idx, act, "live")  # [E, *B, 1]
+        # where(): demo rows of a VC batch carry filler actions / next states; keep them out even if NaN
+        out["loss_qvalue"] = rows.train_mean((q - y).pow(2).sum(0), guard=True)
+        if self.has_value:
+            v = self._v(obs, goal, idx, "live")
+            v_target = (q_pi - alpha * logp_pi).detach()
+            out["loss_value"] = rows.train_mean((v - v_target).pow(2))
+            if self.value_cloning:
+                ret = td.get(self.tensor_keys.demo_return, None)
+                if rows.demo is None or ret is None:
+                    out["loss_value_cloning"] = v.new_zeros(())
+                else:
+                    sq_vc = (v - ret.to(v.dtype).reshape(v.shape)).pow(2)
+                    out["loss_value_cloning"] = self.vc_coef * rows.demo_mean(sq_vc)
+        with torch.no_grad():
+            out["q_mean"] = rows.train_mean(q.mean(0))
+            out["target_mean"] = rows.train_mean(y)
+
+    def _actor_terms(self, logp_pi, q_pi, rows, alpha, out):
+        out["loss_actor"] = rows.actor_mean(alpha * logp_pi - q_pi)
+        lp = logp_pi.detach()
+        if self.learn_alpha:
+            out["loss_alpha"] = -self.log_alpha * rows.actor_mean(lp + self.target_entropy)
+        out["entropy"] = -rows.actor_mean(lp)
+
+    # ------------------------------------------------------------------ forward
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Joint losses (one backward on their sum is correct, see the module docstring)."""
+        obs, goal, idx, *_ = self._read(tensordict)
+        act = tensordict.get(self.tensor_keys.action)
+        alpha = self.alpha
+        a_pi, logp_pi = self._actor_sample(obs, goal, idx)
+        rows = self._rows(tensordict, logp_pi)
+        q_pi = self._q_all(obs, goal, idx, a_pi, "detached").amin(0)
+        out = {}
+        self._critic_terms(tensordict, obs, goal, idx, act, logp_pi, q_pi, rows, alpha, out)
+        self._actor_terms(logp_pi, q_pi, rows, alpha, out)
+        out["alpha"] = alpha
+        return TensorDict(self._ordered(out), batch_size=[])
+
+    def critic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Critic-side losses only (``loss_qvalue`` [+ ``loss_value``, ``loss_value_cloning``])."""
+        obs, goal, idx, *_ = self._read(tensordict)
+        act = tensordict.get(self.tensor_keys.action)
+        alpha = self.alpha
+        with torch.no_grad():
+            if self.has_value:
+                a_pi, logp_pi = self._actor_sample(obs, goal, idx)
+                q_pi = self._q_all(obs, goal, idx, a_pi, "detached").amin(0)
+            else:
+                logp_pi = q_pi = None
+        rows = self._rows(tensordict, act[..., :1])
+        out = {}
+        self._critic_terms(tensordict, obs, goal, idx, act, logp_pi, q_pi, rows, alpha, out)
+        return TensorDict(out, batch_size=[])
+
+    def actor_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Actor-side losses only (``loss_actor`` [+ ``loss_alpha``]) with the current critic."""
+        obs, goal, idx, *_ = self._read(tensordict)
+        alpha = self.alpha
+        a_pi, logp_pi = self._actor_sample(obs, goal, idx)
+        rows = self._rows(tensordict, logp_pi)
+        q_pi = self._q_all(obs, goal, idx, a_pi, "detached").amin(0)
+        out = {}
+        self._actor_terms(logp_pi, q_pi, rows, alpha, out)
+        out["alpha"] = alpha
+        return TensorDict(out, batch_size=[])
+
+    def _ordered(self, out: dict) -> dict:
+        return {k: out[k] for k in self.out_keys if k in out}
+
+
+class DCILUpdater:
+    """One SAC update per :meth:`step`: loss, backward, Adam, Polyak.
+
+    Args:
+        loss: a :class:`DCILSACLoss`.
+        lr_actor, lr_critic: Adam learning rates (authors: 1e-3 both, Dubins).
+        lr_value: V network lr (default: ``lr_critic``); lr_alpha: temperature lr.
+        tau: Polyak rate of the targets (``SoftUpdate(loss, tau=tau)``).
+        mode: ``"joint"`` (one backward on the sum of ``loss_*``, one Adam step; default) or
+            ``"sequential"`` (authors' order: critic/V step, Polyak, then actor/alpha step with the
+            updated critic).
+        compile: wrap the update with ``torch.compile``. On the project's 2-core CPU it was
+            *slower* (0.83x of eager at the Dubins size, 0.92x at the Fetch size, after a 5-20 s
+            compile; ``benchmarks/bench_updates.py --compile``), so leave it off on CPU.
+        cudagraphs: on CUDA, capture the update with ``tensordict.nn.CudaGraphModule`` (ignored on
+            CPU). Adam is then built with ``capturable=True``.
+        updater: an existing target updater (default: a new ``SoftUpdate``).
+
+    :meth:`step` returns a TensorDict of detached losses / diagnostics.
+    """
+
+    def __init__(
+        self,
+        loss: DCILSACLoss,
+        lr_actor: float = 1e-3,
+        lr_critic: float = 1e-3,
+        lr_value: float | None = None,
+        lr_alpha: float = 3e-4,
+        tau: float = 0.005,
+        *,
+        mode: str = "joint",
+        compile: bool = False,
+        cudagraphs: bool = False,
+        updater=None,
+        fused: bool | None = None,
+    ):
+        from torchrl.objectives import SoftUpdate
+
+        if mode not in ("joint", "sequential"):
+            raise ValueError(f"DCILUpdater: mode must be 'joint' or 'sequential', got {mode!r}")
+        self.loss = loss
+        self.mode = mode
+        self.tau = float(tau)
+        self.target_updater = updater if updater is not None else SoftUpdate(loss, tau=tau)
+        device = loss.log_alpha.device
+        use_cg = bool(cudagraphs) and device.type == "cuda"
+
+        def leaves(td):
+            return [p for p in td.values(True, True) if isinstance(p, nn.Parameter) and p.requires_grad]
+
+        actor_p = leaves(loss.actor_network_params)
+        critic_p = leaves(loss.qvalue_network_params)
+        value_p = leaves(loss.value_network_params) if loss.has_value else []
+        alpha_p = [loss.log_alpha] if loss.learn_alpha else []
+        lr_value = lr_critic if lr_value is None else lr_value
+        kw = {"capturable": True} if use_cg else {}
+        if fused is None:
+            fused = True
+        kw["fused"] = fused
+        if not fused:
+            kw["foreach"] = True
+
+        def adam(groups):
+            merged: dict[float, list] = {}  # one group per distinct lr (fewer fused kernel calls)
+            for g in groups:
+                merged.setdefault(float(g["lr"]), []).extend(g["params"])
+            groups = [{"params": ps, "lr": lr} for lr, ps in merged.items() if ps]
+            try:
+                return torch.optim.Adam(groups, **kw)
+            except (RuntimeError, ValueError):
+                kw.pop("fused", None)
+                kw["foreach"] = True
+                return torch.optim.Adam(groups, **kw)
+
+        if mode == "joint":
+            self.optimizers = [adam([
+                {"params": actor_p, "lr": lr_actor},
+                {"params": critic_p, "lr": lr_critic},
+                {"params": value_p, "lr": lr_value},
+                {"params": alpha_p, "lr": lr_alpha},
+            ])]
+        else:
+            self.optimizers = [
+                adam([{"params": critic_p, "lr": lr_critic}, {"params": value_p, "lr": lr_value}]),
+                adam([{"params": actor_p, "lr": lr_actor}, {"params": alpha_p, "lr": lr_alpha}]),
+            ]
+        # Polyak on flat tensor lists (same tensors SoftUpdate updates; one foreach call)
+        self._polyak_lists = None
+        try:
+            tu = self.target_updater
+            srcs, tgts = [], []
+            for key, src in tu._sources.items(True, True):
+                key = key if isinstance(key, tuple) else (key,)
+                tgts.append(tu._targets.get(("target_" + key[0], *key[1:])).data)
+                srcs.append(src.data)
+            if srcs and type(tu) is SoftUpdate:
+                self._polyak_lists = (tgts, srcs, 1.0 - tu.eps)
+        except Exception:  # noqa: BLE001  - fall back on updater.step()
+            self._polyak_lists = None
+
+        fn = self._step_joint if mode == "joint" else self._step_sequential
+        if compile:
+            fn = torch.compile(fn)
+        if use_cg:
+            from tensordict.nn import CudaGraphModule
+
+            fn = CudaGraphModule(fn, warmup=10)
+        self._fn = fn
+
+    def _polyak(self):
+        if self._polyak_lists is not None:
+            tgts, srcs, w = self._polyak_lists
+            torch._foreach_lerp_(tgts, srcs, w)
+        else:
+            self.target_updater.step()
+
+    def _step_joint(self, batch: TensorDictBase) -> TensorDictBase:
+        out = self.loss(batch)
+        total = sum(v for k, v in out.items() if k.startswith("loss_"))
+        total.backward()
+        opt = self.optimizers[0]
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+        self._polyak()
+        return out.detach()
+
+    def _step_sequential(self, batch: TensorDictBase) -> TensorDictBase:
+        crit_opt, act_opt = self.optimizers
+        c = self.loss.critic_loss(batch)
+        sum(v for k, v in c.items() if k.startswith("loss_")).backward()
+        crit_opt.step()
+        crit_opt.zero_grad(set_to_none=True)
+        self._polyak()
+        a = self.loss.actor_loss(batch)
+        sum(v for k, v in a.items() if k.startswith("loss_")).backward()
+        act_opt.step()
+        act_opt.zero_grad(set_to_none=True)
+        c.update(a)
+        return c.detach()
+
+    def step(self, batch: TensorDictBase) -> TensorDictBase:
+        """One update on ``batch``; returns the detached losses and diagnostics."""
+        return self._fn(batch)
+
+    __call__ = step

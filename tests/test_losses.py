@@ -1,0 +1,329 @@
+"""DCILSACLoss / DCILUpdater: targets, gradient routing, order independence, target updates."""
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.modules import TanhNormal
+from torchrl.objectives import SoftUpdate
+
+from srdcil.networks import make_actor, make_qvalue, make_value
+from srdcil.objectives import DCILSACLoss, DCILUpdater
+
+OBS, GOAL, N, ACT = 2, 2, 3, 1
+GAMMA = 0.9
+
+# the loss warns when target params exist and no SoftUpdate is attached; tests build losses bare
+pytestmark = pytest.mark.filterwarnings("ignore:No target network updater")
+
+
+def _linear_q(v0, v1, c0, c1):
+    """Twin Q with no hidden layer: Q_j = c_j * goal_x + v_j[goal_idx] (independent of obs and action)."""
+    q = make_qvalue(OBS, GOAL, N, ACT, hidden=())
+    with torch.no_grad():
+        for j, (v, c) in enumerate(((v0, c0), (v1, c1))):
+            lin = q.module.members[j][0]  # weight [1, in]
+            lin.weight.zero_()
+            lin.bias.zero_()
+            lin.weight[0, OBS] = c
+            lin.weight[0, OBS + GOAL: OBS + GOAL + N] = torch.tensor(v)
+    return q
+
+
+def _linear_v(v, c):
+    """V = c * goal_x + v[goal_idx]."""
+    m = make_value(OBS, GOAL, N, hidden=())
+    lin = m.module.layers[0]
+    with torch.no_grad():
+        lin.weight.zero_()
+        lin.bias.zero_()
+        lin.weight[0, OBS] = c
+        lin.weight[0, OBS + GOAL: OBS + GOAL + N] = torch.tensor(v)
+    return m
+
+
+def _three_rows():
+    """row 0: success on goal 0 (not last) -> next goal g1, idx 1; row 1: success on the last goal
+    (terminated); row 2: no success on goal 1 (bootstraps on the same goal, far goal_x -> clipped)."""
+    td = TensorDict(
+        observation=torch.tensor([[0.1, 0.2], [0.3, -0.1], [0.0, 0.5]]),
+        goal=torch.tensor([[0.2, 0.0], [3.0, 1.0], [6.0, 0.0]]),
+        goal_idx=torch.tensor([[0], [2], [1]]),
+        action=torch.tensor([[0.5], [-0.2], [0.1]]),
+        batch_size=[3],
+    )
+    td["next"] = TensorDict(
+        observation=torch.tensor([[0.2, 0.1], [3.0, 1.0], [0.1, 0.4]]),
+        goal=torch.tensor([[1.0, 0.5], [3.0, 1.0], [6.0, 0.0]]),
+        goal_idx=torch.tensor([[1], [2], [1]]),
+        reward=torch.tensor([[1.0], [1.0], [0.0]]),
+        terminated=torch.tensor([[False], [True], [False]]),
+        done=torch.tensor([[False], [True], [False]]),
+        batch_size=[3],
+    )
+    return td
+
+
+def _random_batch(B=16, demo_frac=0.25, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    td = TensorDict(
+        observation=torch.randn(B, OBS, generator=g), goal=torch.randn(B, GOAL, generator=g),
+        goal_idx=torch.randint(0, N, (B, 1), generator=g), action=torch.rand(B, ACT, generator=g) * 2 - 1,
+        is_demo=torch.arange(B).unsqueeze(-1) % 4 == 0, demo_return=torch.rand(B, 1, generator=g) * 3,
+        batch_size=[B],
+    )
+    td["next"] = TensorDict(
+        observation=torch.randn(B, OBS, generator=g), goal=torch.randn(B, GOAL, generator=g),
+        goal_idx=torch.randint(0, N, (B, 1), generator=g),
+        reward=(torch.rand(B, 1, generator=g) < 0.4).float(),
+        terminated=torch.rand(B, 1, generator=g) < 0.2, done=torch.rand(B, 1, generator=g) < 0.3,
+        batch_size=[B],
+    )
+    return td
+
+
+def _row_noise(loc):
+    """Deterministic per-row 'noise': a function of the row's own actor output (permutation-equivariant)."""
+    return torch.sin(1000.0 * loc)
+
+
+def _small_loss(with_value=False, **kw):
+    torch.manual_seed(0)
+    actor = make_actor(OBS, GOAL, N, ACT, hidden=(16, 16))
+    q = make_qvalue(OBS, GOAL, N, ACT, hidden=(16, 16))
+    v = make_value(OBS, GOAL, N, hidden=(16, 16)) if with_value else None
+    return DCILSACLoss(actor, q, v, **kw)
+
+
+def test_target_matches_hand_computation():
+    actor = make_actor(OBS, GOAL, N, ACT, hidden=(8,))
+    q = _linear_q(v0=[0.5, 1.0, 7.0], v1=[0.8, 0.6, 9.0], c0=1.0, c1=2.0)
+    loss = DCILSACLoss(actor, q, gamma=GAMMA, target_clip=(0.0, 5.0))
+    td = _three_rows()
+    y = loss.compute_target(td)
+    # row 0: next (goal_x 1.0, idx 1): min(1 + 1.0, 2 + 0.6) = 2.0  -> 1 + 0.9 * 2.0
+    # (bootstrapping on the *current* goal (0.2, idx 0) would give min(0.7, 1.2) -> 1.63)
+    # row 1: terminated -> r = 1
+    # row 2: min(6 + 1.0, 12 + 0.6) = 7 -> clipped to 5 -> 0.9 * 5
+    expected = torch.tensor([[1 + GAMMA * 2.0], [1.0], [GAMMA * 5.0]])
+    torch.testing.assert_close(y, expected)
+    # without clipping row 2 bootstraps on 7
+    loss_nc = DCILSACLoss(actor, q, gamma=GAMMA, target_clip=None)
+    torch.testing.assert_close(loss_nc.compute_target(td)[2], torch.tensor([GAMMA * 7.0]))
+    # the critic loss is the authors' mean over rows of sum_j (Q_j - y)^2 (no 1/2), both nets on all rows
+    out = loss(td)
+    gx, idx = td["goal"][:, 0], td["goal_idx"][:, 0]
+    q0 = 1.0 * gx + torch.tensor([0.5, 1.0, 7.0])[idx]
+    q1 = 2.0 * gx + torch.tensor([0.8, 0.6, 9.0])[idx]
+    yy = expected[:, 0]
+    torch.testing.assert_close(out["loss_qvalue"], ((q0 - yy) ** 2 + (q1 - yy) ** 2).mean())
+    torch.testing.assert_close(out["target_mean"], yy.mean())
+    # target_q_value = min_j Qbar_j(s, a) with the target parameters
+    torch.testing.assert_close(loss.target_q_value(td)[:, 0], torch.minimum(q0, q1))
+
+
+def test_value_mode_target_uses_target_v():
+    actor = make_actor(OBS, GOAL, N, ACT, hidden=(8,))
+    q = make_qvalue(OBS, GOAL, N, ACT, hidden=(8,))
+    v = _linear_v([0.5, 1.0, 7.0], 1.0)
+    loss = DCILSACLoss(actor, q, v, gamma=GAMMA)
+    y = loss.compute_target(_three_rows())
+    torch.testing.assert_close(y, torch.tensor([[1 + GAMMA * 2.0], [1.0], [GAMMA * 5.0]]))
+    # it is the *target* V: moving the live V does not change y until a target update
+    with torch.no_grad():
+        v.module.layers[0].bias.add_(1.0)
+    torch.testing.assert_close(loss.compute_target(_three_rows()), y)
+
+
+def test_entropy_backup_changes_target():
+    actor = make_actor(OBS, GOAL, N, ACT, hidden=(8,))
+    q = _linear_q(v0=[0.5, 1.0, 2.0], v1=[0.8, 0.6, 3.0], c0=0.1, c1=0.2)
+    kw = dict(gamma=GAMMA, alpha=0.5, target_clip=None)
+    plain = DCILSACLoss(actor, q, **kw)
+    eb = DCILSACLoss(actor, q, entropy_backup=True, **kw)
+    for m in (plain, eb):
+        m._sample_noise = torch.zeros_like  # a' = tanh(loc(s'))
+    td = _three_rows()
+    y0, y1 = plain.compute_target(td), eb.compute_target(td)
+    nxt = td["next"]
+    loc, scale = actor.module[0].module(nxt["observation"], nxt["goal"], nxt["goal_idx"])
+    logp = TanhNormal(loc, scale).log_prob(torch.tanh(loc)).unsqueeze(-1)
+    notterm = (~nxt["terminated"]).float()
+    torch.testing.assert_close(y1, y0 - GAMMA * notterm * 0.5 * logp, rtol=1e-4, atol=1e-4)
+    assert not torch.allclose(y0, y1)
+    assert y1[1] == y0[1] == 1.0  # terminated row: no bootstrap at all
+
+
+def test_closed_form_log_prob_matches_tanh_normal():
+    loss = _small_loss()
+    td = _random_batch()
+    loss._sample_noise = _row_noise
+    a, logp = loss._actor_sample(td["observation"], td["goal"], td["goal_idx"])
+    loc, scale = loss._actor_core(td["observation"], td["goal"], td["goal_idx"])
+    u = loc + scale * _row_noise(loc)
+    torch.testing.assert_close(a, torch.tanh(u))
+    ref = TanhNormal(loc, scale).log_prob(torch.tanh(u)).unsqueeze(-1)
+    torch.testing.assert_close(logp, ref, rtol=1e-3, atol=1e-3)
+
+
+def _grads(params):
+    return [p.grad for p in params.values(True, True) if isinstance(p, torch.nn.Parameter)]
+
+
+def _nonzero(grads):
+    return any(g is not None and g.abs().sum() > 0 for g in grads)
+
+
+@pytest.mark.parametrize("key", ["loss_value_cloning", "loss_value"])
+def test_value_losses_reach_only_value_network(key):
+    loss = _small_loss(with_value=True)
+    out = loss(_random_batch())
+    assert {"loss_qvalue", "loss_actor", "loss_value", "loss_value_cloning"} <= set(out.keys())
+    out[key].backward()
+    assert not _nonzero(_grads(loss.actor_network_params))
+    assert not _nonzero(_grads(loss.qvalue_network_params))
+    assert _nonzero(_grads(loss.value_network_params))
+
+
+def test_actor_loss_does_not_touch_critics_and_critic_loss_does_not_touch_actor():
+    loss = _small_loss(with_value=True)
+    out = loss(_random_batch())
+    out["loss_actor"].backward(retain_graph=True)
+    assert _nonzero(_grads(loss.actor_network_params))
+    assert not _nonzero(_grads(loss.qvalue_network_params))
+    assert not _nonzero(_grads(loss.value_network_params))
+    for p in loss.parameters():
+        p.grad = None
+    out["loss_qvalue"].backward()
+    assert _nonzero(_grads(loss.qvalue_network_params))
+    assert not _nonzero(_grads(loss.actor_network_params))
+    assert not _nonzero(_grads(loss.value_network_params))
+
+
+def test_value_cloning_uses_demo_rows_only():
+    loss = _small_loss(with_value=True, vc_coef=2.0)
+    td = _random_batch()
+    loss._sample_noise = _row_noise
+    out = loss(td)
+    v = loss._v_core(td["observation"], td["goal"], td["goal_idx"])
+    demo = td["is_demo"]
+    expected = 2.0 * ((v - td["demo_return"])[demo] ** 2).mean()
+    torch.testing.assert_close(out["loss_value_cloning"], expected)
+    # the demo rows' (filler) actions / next states do not enter the Q loss
+    td2 = td.clone()
+    td2["action"][demo[:, 0]] = 0.77
+    td2["next", "reward"][demo[:, 0]] = 5.0
+    torch.testing.assert_close(loss(td2)["loss_qvalue"], out["loss_qvalue"])
+
+
+@pytest.mark.parametrize("with_value", [False, True])
+def test_result_independent_of_batch_order(with_value):
+    loss = _small_loss(with_value=with_value, learn_alpha=True)
+    loss._sample_noise = _row_noise
+    td = _random_batch(B=32)
+    perm = torch.randperm(32, generator=torch.Generator().manual_seed(3))
+    a, b = loss(td), loss(td[perm])
+    assert set(a.keys()) == set(b.keys())
+    for k in a.keys():
+        torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-6)
+
+
+def test_learned_alpha():
+    loss = _small_loss(learn_alpha=True, alpha=0.1)
+    out = loss(_random_batch())
+    assert "loss_alpha" in out.keys()
+    torch.testing.assert_close(out["alpha"], torch.tensor(0.1))
+    out["loss_alpha"].backward()
+    assert loss.log_alpha.grad is not None and loss.log_alpha.grad.abs() > 0
+    assert "loss_alpha" not in _small_loss()(_random_batch()).keys()
+
+
+def test_soft_update_moves_target_params():
+    loss = _small_loss(with_value=True)
+    updater = SoftUpdate(loss, tau=0.1)
+    src = loss.qvalue_network_params.clone()
+    tgt0 = loss.target_qvalue_network_params.clone()
+    with torch.no_grad():
+        for p in loss.qvalue_network_params.values(True, True):
+            p.add_(1.0)
+        for p in loss.value_network_params.values(True, True):
+            p.add_(1.0)
+    updater.step()
+    tgt1 = loss.target_qvalue_network_params
+    w = ("module", "members", "0", "0", "weight")
+    torch.testing.assert_close(tgt1[w], tgt0[w] + 0.1 * (src[w] + 1.0 - tgt0[w]))
+    wv = ("module", "layers", "0", "weight")
+    assert not torch.allclose(loss.target_value_network_params[wv], loss.value_network_params[wv])
+    # the Q target (used by compute_target / target_q_value) follows
+    td = _random_batch()
+    before = loss.target_q_value(td)
+    updater.step()
+    assert not torch.allclose(before, loss.target_q_value(td))
+
+
+def test_updater_polyak_matches_soft_update_and_learns():
+    torch.manual_seed(0)
+    loss = _small_loss(with_value=True)
+    up = DCILUpdater(loss, lr_actor=3e-3, lr_critic=3e-3, tau=0.05)
+    td = _random_batch(B=64)
+    tgt_before = loss.target_qvalue_network_params.clone()
+    first = up.step(td)
+    after = loss.target_qvalue_network_params
+    w = ("module", "members", "1", "2", "weight")
+    src = loss.qvalue_network_params[w]
+    torch.testing.assert_close(after[w], tgt_before[w] + 0.05 * (src - tgt_before[w]))
+    assert all(not v.requires_grad for v in first.values())
+    for _ in range(150):
+        last = up.step(td)
+    assert last["loss_value_cloning"] < 0.5 * first["loss_value_cloning"]
+    assert last["loss_qvalue"] < first["loss_qvalue"]
+
+
+def test_sequential_mode_runs_and_changes_all_networks():
+    loss = _small_loss()
+    up = DCILUpdater(loss, mode="sequential")
+    a0 = loss.actor_network_params.clone()
+    q0 = loss.qvalue_network_params.clone()
+    out = up.step(_random_batch())
+    assert {"loss_qvalue", "loss_actor"} <= set(out.keys())
+    w = ("module", "members", "0", "0", "weight")
+    assert not torch.allclose(loss.qvalue_network_params[w], q0[w])
+    aw = ("module", "0", "module", "trunk", "layers", "0", "weight")
+    assert not torch.allclose(loss.actor_network_params[aw], a0[aw])
+
+
+def test_set_keys_and_in_keys():
+    loss = _small_loss(with_value=True)
+    loss.set_keys(reward="r2", is_demo="demo_flag")
+    assert ("next", "r2") in loss.in_keys and "demo_flag" in loss.in_keys
+    td = _random_batch()
+    td["next", "r2"] = td["next", "reward"]
+    td["demo_flag"] = td["is_demo"]
+    del td["next", "reward"]
+    del td["is_demo"]
+    out = loss(td)
+    assert torch.isfinite(out["loss_qvalue"])
+    with pytest.raises(ValueError):
+        loss.set_keys(not_a_key="x")
+
+
+def test_normalisation_and_dtype_move_reach_the_loss():
+    from srdcil.networks import set_normalization
+
+    loss = _small_loss(with_value=True)
+    g = torch.Generator().manual_seed(0)
+    obs, goal = torch.randn(100, OBS, generator=g) * 3 + 1, torch.randn(100, GOAL, generator=g)
+    n = set_normalization(loss, obs=obs, goal=goal)
+    assert n == 3  # actor trunk, twin Q, V
+    td = _random_batch()
+    y32 = loss.compute_target(td.clone())
+    # the target networks read the live normalisation (buffers are not Polyak-averaged)
+    assert loss._q_core.norm_clip == 10.0
+    loss = loss.to(torch.float64)
+    td64 = td.apply(lambda x: x.double() if x.is_floating_point() else x)
+    out = loss(td64)
+    assert out["loss_qvalue"].dtype == torch.float64
+    assert loss._q_core.obs_loc.dtype == torch.float64 and loss._q_core.obs_loc.abs().sum() > 0
+    loss._sample_noise = torch.zeros_like
+    y64 = loss.compute_target(td64)
+    assert y64.dtype == torch.float64 and y64.shape == y32.shape

@@ -1,0 +1,342 @@
+"""MixedReplay: exact demo split, DCIL relabelling within one goal-attempt, the rule on every row."""
+import time
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from srdcil.replay import TRANSITION_KEYS, VALUE_STATE_KEYS, MixedReplay
+
+N_GOALS = 4
+RADIUS = 0.1
+# goals far from every achieved goal below, so no stored transition is a success by accident
+GOALS = torch.stack([torch.tensor([-100.0 - 10 * i, -100.0]) for i in range(N_GOALS)])
+
+
+def ag_code(env, t):
+    """Achieved goal of s_{t+1} in env stream ``env``: unique per (env, t), decodable."""
+    return torch.stack([env.float() * 10_000 + t.float(), 5.0 + env.float()], -1)
+
+
+class Streams:
+    """Synthetic collector output for ``n_envs`` env streams with known goal-attempts."""
+
+    def __init__(self, n_envs=2, p_end=0.3, seed=0, ags_switch=False, give_attempt_end=True):
+        self.n = n_envs
+        self.t = 0
+        self.g = torch.Generator().manual_seed(seed)
+        self.p_end = p_end
+        self.ags_switch = ags_switch
+        self.give_attempt_end = give_attempt_end
+        self.attempt = torch.zeros(n_envs, dtype=torch.long)  # ground truth attempt counter
+        self.idx = torch.zeros(n_envs, dtype=torch.long)
+        self.truth = {}  # (env, t) -> attempt id
+
+    def batch(self, T, force_open_env0=False):
+        n = self.n
+        env = torch.arange(n).unsqueeze(1).expand(n, T)
+        t = (self.t + torch.arange(T)).expand(n, T)
+        ends = torch.rand(n, T, generator=self.g) < self.p_end
+        if force_open_env0:
+            ends[0] = False
+        goal_idx = torch.empty(n, T, dtype=torch.long)
+        attempt = torch.empty(n, T, dtype=torch.long)
+        for j in range(T):  # ground truth, written the slow obvious way
+            goal_idx[:, j] = self.idx
+            attempt[:, j] = self.attempt
+            for e in range(n):
+                self.truth[(e, int(t[e, j]))] = int(self.attempt[e])
+            self.attempt += ends[:, j].long()
+            self.idx = torch.where(ends[:, j], (self.idx + 1) % N_GOALS, self.idx)
+        self.t += T
+        if self.ags_switch:  # control flow switched goal with r = 0 (AGS) at attempt ends
+            next_idx = torch.where(ends, (goal_idx + 1).clamp_max(N_GOALS - 1), goal_idx)
+            done = torch.zeros_like(ends)
+        else:  # attempts end by timeout: same goal, done
+            next_idx = goal_idx
+            done = ends
+        td = TensorDict(
+            {
+                "observation": torch.stack([env.float(), t.float(), attempt.float()], -1),
+                "achieved_goal": ag_code(env, t - 1),
+                "goal": GOALS[goal_idx],
+                "goal_idx": goal_idx.unsqueeze(-1),
+                "action": torch.zeros(n, T, 2),
+                "collector": {"traj_ids": torch.zeros(n, T, dtype=torch.long)},
+                "next": {
+                    "observation": torch.stack([env.float(), t.float() + 1, attempt.float()], -1),
+                    "achieved_goal": ag_code(env, t),
+                    "goal": GOALS[next_idx],
+                    "goal_idx": next_idx.unsqueeze(-1),
+                    "reward": torch.zeros(n, T, 1),
+                    "terminated": torch.zeros(n, T, 1, dtype=torch.bool),
+                    "truncated": done.unsqueeze(-1),
+                    "done": done.unsqueeze(-1),
+                    "env_terminated": torch.zeros(n, T, 1, dtype=torch.bool),
+                    "success": torch.zeros(n, T, 1, dtype=torch.bool),
+                },
+            },
+            [n, T],
+        )
+        if self.give_attempt_end:
+            td["next", "attempt_end"] = (ends | (next_idx != goal_idx)).unsqueeze(-1)
+        return td
+
+
+def make_demo(T=40):
+    """Demo transitions with deliberately 'inconsistent' stored targets, to see they are untouched."""
+    i = torch.arange(T)
+    idx = (i * N_GOALS // T).unsqueeze(-1)
+    return TensorDict(
+        {
+            "observation": torch.stack([torch.full((T,), -1.0), i.float(), torch.zeros(T)], -1),
+            "achieved_goal": torch.stack([-1.0 - i.float(), torch.full((T,), -7.0)], -1),
+            "goal": GOALS[idx.squeeze(-1)],
+            "goal_idx": idx,
+            "action": torch.ones(T, 2),
+            "demo_return": torch.full((T, 1), 3.0),
+            "next": {
+                "observation": torch.stack([torch.full((T,), -1.0), i.float() + 1, torch.zeros(T)], -1),
+                "achieved_goal": torch.stack([-2.0 - i.float(), torch.full((T,), -7.0)], -1),
+                "goal": GOALS[idx.squeeze(-1)],
+                "goal_idx": idx,
+                "reward": torch.full((T, 1), 0.5),  # not what the rule would give
+                "terminated": torch.zeros(T, 1, dtype=torch.bool),
+                "truncated": torch.zeros(T, 1, dtype=torch.bool),
+                "done": torch.zeros(T, 1, dtype=torch.bool),
+            },
+        },
+        [T],
+    )
+
+
+def decode_source(goal):
+    """(env, t') of a relabelled goal = ag_code(env, t')."""
+    env = (goal[:, 1] - 5.0).round().long()
+    t = (goal[:, 0] - env.float() * 10_000).round().long()
+    return env, t
+
+
+def check_relabelled_rows(batch, streams, newest_t, ring):
+    """Every changed goal is a later-or-same achieved goal of the same, still stored, attempt."""
+    train = batch[~batch["is_demo"].squeeze(-1)]
+    env = train["observation"][:, 0].long()
+    t = train["observation"][:, 1].long()
+    changed = (train["goal"] != GOALS[train["goal_idx"].squeeze(-1)]).any(-1)
+    src_env, src_t = decode_source(train["goal"][changed])
+    assert torch.equal(src_env, env[changed])
+    assert (src_t >= t[changed]).all()
+    assert (src_t > newest_t - ring).all() and (src_t <= newest_t).all()  # still stored
+    for e, tt, st in zip(env[changed].tolist(), t[changed].tolist(), src_t.tolist()):
+        assert streams.truth[(e, st)] == streams.truth[(e, tt)]
+    return changed
+
+
+def test_exact_split_keys_and_shuffle():
+    g = torch.Generator().manual_seed(1)
+    rb = MixedReplay(GOALS, RADIUS, capacity=1000, demo=make_demo(), generator=g)
+    s = Streams()
+    rb.extend(s.batch(50))
+    assert len(rb) == 100
+    blocks = 0
+    for _ in range(20):
+        b = rb.sample(256)
+        assert b.batch_size == torch.Size([256])
+        assert int(b["is_demo"].sum()) == 51
+        assert set(b.keys(True, True)) == set(TRANSITION_KEYS)
+        where = b["is_demo"].squeeze(-1).nonzero().squeeze(-1)
+        blocks += int(where[-1] - where[0] == 50)  # demo rows in one contiguous block
+    assert blocks == 0  # rows are permuted
+    assert int(rb.sample(100)["is_demo"].sum()) == 20
+    assert rb.sample()["is_demo"].shape == (256, 1)
+    # without a demo: all training rows
+    rb2 = MixedReplay(GOALS, RADIUS, capacity=1000, generator=g)
+    rb2.extend(s.batch(10))
+    assert not rb2.sample(64)["is_demo"].any()
+
+
+def test_demo_rows_returned_as_stored():
+    demo = make_demo()
+    rb = MixedReplay(GOALS, RADIUS, capacity=1000, demo=demo, relabel_fraction=1.0,
+                     generator=torch.Generator().manual_seed(2))
+    rb.extend(Streams().batch(30))
+    b = rb.sample(256)
+    d = b[b["is_demo"].squeeze(-1)]
+    rows = demo[d["observation"][:, 1].long()]
+    for k in ("goal", "goal_idx", ("next", "goal"), ("next", "goal_idx"), ("next", "reward"), "demo_return"):
+        assert torch.equal(d[k], rows[k]), k
+    assert (d["next", "reward"] == 0.5).all()  # the rule was not applied to demo rows
+
+
+def test_relabel_fraction_zero_and_one():
+    s = Streams()
+    data = s.batch(60)
+    rb0 = MixedReplay(GOALS, RADIUS, capacity=1000, relabel_fraction=0.0, generator=torch.Generator().manual_seed(3))
+    rb1 = MixedReplay(GOALS, RADIUS, capacity=1000, relabel_fraction=1.0, generator=torch.Generator().manual_seed(3))
+    rb0.extend(data)
+    rb1.extend(data)
+    b0, b1 = rb0.sample(512), rb1.sample(512)
+    stored0 = GOALS[b0["goal_idx"].squeeze(-1)]
+    assert torch.equal(b0["goal"], stored0)
+    assert (b0["next", "reward"] == 0).all()
+    assert (b1["goal"] != GOALS[b1["goal_idx"].squeeze(-1)]).any(-1).all()
+    changed = check_relabelled_rows(b1, s, newest_t=59, ring=500)
+    assert changed.all()
+
+
+def test_half_relabelled_same_attempt_and_rule():
+    s = Streams(n_envs=2, p_end=0.25)
+    rb = MixedReplay(GOALS, RADIUS, capacity=2000, relabel_fraction=0.5,
+                     generator=torch.Generator().manual_seed(4))
+    rb.extend(s.batch(200))
+    b = rb.sample(4096)
+    changed = check_relabelled_rows(b, s, newest_t=199, ring=1000)
+    assert 0.45 < changed.float().mean() < 0.55
+    # reward recomputed from the relabelled goal; offsets > 0 never reach a distinct code
+    env = b["observation"][:, 0]
+    t = b["observation"][:, 1]
+    offset0 = changed & (b["goal"] == ag_code(env.long(), t.long())).all(-1)
+    r = b["next", "reward"].squeeze(-1)
+    assert (r[offset0] == 1).all() and (r[~offset0] == 0).all()
+    assert offset0.sum() > 0
+    idx = b["goal_idx"].squeeze(-1)
+    nidx = b["next", "goal_idx"].squeeze(-1)
+    sw = offset0 & (idx < N_GOALS - 1)
+    assert torch.equal(nidx[sw], idx[sw] + 1)
+    assert torch.equal(b["next", "goal"][sw], GOALS[idx[sw] + 1])
+    last = offset0 & (idx == N_GOALS - 1)
+    assert last.sum() > 0
+    assert b["next", "terminated"][last].all() and b["next", "done"][last].all()
+    assert torch.equal(b["next", "goal"][~offset0], b["goal"][~offset0])
+    assert not b["next", "terminated"][~offset0].any()
+
+
+def test_offset_zero_single_step_attempts():
+    """Attempts of one step: every relabel is offset 0 -> r = 1, switch to g_{i+1}, or terminate."""
+    s = Streams(n_envs=3, p_end=1.0)
+    rb = MixedReplay(GOALS, RADIUS, capacity=300, relabel_fraction=1.0,
+                     generator=torch.Generator().manual_seed(5))
+    rb.extend(s.batch(40))
+    b = rb.sample(256)
+    env, t = b["observation"][:, 0].long(), b["observation"][:, 1].long()
+    assert torch.equal(b["goal"], ag_code(env, t))
+    assert (b["next", "reward"] == 1).all()
+    idx = b["goal_idx"].squeeze(-1)
+    nl = idx < N_GOALS - 1
+    assert torch.equal(b["goal_idx"], torch.as_tensor(b["observation"][:, 2:]).long() % N_GOALS)  # kept
+    assert torch.equal(b["next", "goal_idx"].squeeze(-1)[nl], idx[nl] + 1)
+    assert torch.equal(b["next", "goal"][nl], GOALS[idx[nl] + 1])
+    assert not b["next", "terminated"][nl].any()
+    assert b["next", "terminated"][~nl].all() and (~nl).sum() > 0
+
+
+def test_ags_switch_without_success_is_undone_by_rule():
+    s = Streams(p_end=0.3, ags_switch=True)
+    data = s.batch(80)
+    assert (data["next", "goal_idx"] != data["goal_idx"]).any()
+    rb = MixedReplay(GOALS, RADIUS, capacity=1000, relabel_fraction=0.0,
+                     generator=torch.Generator().manual_seed(6))
+    rb.extend(data)
+    b = rb.sample(1024)
+    env, t = b["observation"][:, 0].long(), b["observation"][:, 1].long()
+    stored_switch = (data["next", "goal_idx"] != data["goal_idx"])[env, t].squeeze(-1)
+    assert stored_switch.sum() > 50  # sampled rows whose control flow switched with r = 0
+    assert torch.equal(b["next", "goal"], b["goal"])
+    assert torch.equal(b["next", "goal_idx"], b["goal_idx"])
+    assert (b["next", "reward"] == 0).all()
+    assert not b["next", "done"].any()
+
+
+def test_attempt_end_derived_and_attempt_spanning_two_extends():
+    s = Streams(n_envs=2, p_end=0.0, give_attempt_end=False)  # one endless attempt per env
+    rb = MixedReplay(GOALS, RADIUS, capacity=1000, relabel_fraction=1.0,
+                     generator=torch.Generator().manual_seed(7))
+    rb.extend(s.batch(5))
+    s.p_end = 0.2
+    s.give_attempt_end = True
+    rb.extend(s.batch(25, force_open_env0=False))
+    b = rb.sample(4096)
+    check_relabelled_rows(b, s, newest_t=29, ring=500)
+    env, t = b["observation"][:, 0].long(), b["observation"][:, 1].long()
+    _, src_t = decode_source(b["goal"])
+    first = t < 5
+    # rows of the first batch are relabelled with goals achieved in the second batch too
+    assert (src_t[first] >= 5).any()
+
+
+def test_open_attempt_uses_only_stored_steps_then_grows():
+    s = Streams(n_envs=2, p_end=0.0)
+    rb = MixedReplay(GOALS, RADIUS, capacity=1000, relabel_fraction=1.0,
+                     generator=torch.Generator().manual_seed(8))
+    rb.extend(s.batch(6))
+    _, src_t = decode_source(rb.sample(2048)["goal"])
+    assert src_t.max() == 5
+    rb.extend(s.batch(6))
+    b = rb.sample(2048)
+    _, src_t = decode_source(b["goal"])
+    assert src_t.max() == 11
+    check_relabelled_rows(b, s, newest_t=11, ring=500)
+
+
+@pytest.mark.parametrize("T", [7, 40])
+def test_capacity_bound_and_wraparound_never_mixes_attempts(T):
+    s = Streams(n_envs=2, p_end=0.15, seed=T)
+    rb = MixedReplay(GOALS, RADIUS, capacity=31, relabel_fraction=0.7, demo=make_demo(),
+                     generator=torch.Generator().manual_seed(9))
+    for k in range(12):
+        rb.extend(s.batch(T))
+        assert len(rb) <= 31
+        b = rb.sample(256)
+        newest = s.t - 1
+        train = b[~b["is_demo"].squeeze(-1)]
+        t = train["observation"][:, 1]
+        assert (t > newest - 15).all() and (t <= newest).all()  # only the newest 15 steps per env
+        check_relabelled_rows(b, s, newest_t=newest, ring=15)
+    assert len(rb) == 30
+
+
+def test_value_states_mode():
+    demo = make_demo().select("observation", "goal", "goal_idx", "demo_return")
+    rb = MixedReplay(GOALS, RADIUS, capacity=1000, demo=demo, generator=torch.Generator().manual_seed(10))
+    assert rb.demo_mode == "states"
+    rb.extend(Streams().batch(30))
+    b = rb.sample(256)
+    assert not b["is_demo"].any()  # SAC batch: training rows only
+    v = rb.sample_value_states(256)
+    assert set(v.keys()) == set(VALUE_STATE_KEYS)
+    assert int(v["is_demo"].sum()) == 51
+    assert (v["demo_return"][v["is_demo"]] == 3.0).all()
+    assert (v["demo_return"][~v["is_demo"]] == 0.0).all()
+
+
+def test_missing_key_error_names_it():
+    td = Streams().batch(4).exclude("action")
+    rb = MixedReplay(GOALS, RADIUS, capacity=100)
+    with pytest.raises(KeyError, match="action"):
+        rb.extend(td)
+
+
+def test_state_dict_roundtrip():
+    s = Streams()
+    rb = MixedReplay(GOALS, RADIUS, capacity=100, relabel_fraction=1.0)
+    rb.extend(s.batch(20))
+    rb2 = MixedReplay(GOALS, RADIUS, capacity=100, relabel_fraction=1.0)
+    rb2.load_state_dict(rb.state_dict())
+    rb2.extend(s.batch(20))
+    assert len(rb2) == 80
+    check_relabelled_rows(rb2.sample(1024), s, newest_t=39, ring=50)
+
+
+def test_sample_speed():
+    rb = MixedReplay(GOALS, RADIUS, capacity=100_000, demo=make_demo(), generator=torch.Generator().manual_seed(0))
+    s = Streams(n_envs=4)
+    for _ in range(10):
+        rb.extend(s.batch(100))
+    for _ in range(5):
+        rb.sample(256)
+    n = 50
+    t0 = time.perf_counter()
+    for _ in range(n):
+        rb.sample(256)
+    dt = (time.perf_counter() - t0) / n
+    assert dt < 0.01, f"sample(256) took {dt * 1e3:.2f} ms"
