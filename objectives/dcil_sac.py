@@ -610,6 +610,16 @@ class DCILUpdater:
             fn = CudaGraphModule(fn, warmup=10)
         self._fn = fn
 
+    def state_dict(self) -> dict:
+        """Optimiser states (the networks and targets live in ``loss.state_dict()``)."""
+        return {"mode": self.mode, "optimizers": [o.state_dict() for o in self.optimizers]}
+
+    def load_state_dict(self, state: dict) -> None:
+        if state["mode"] != self.mode:
+            raise ValueError(f"DCILUpdater: checkpoint was saved in mode {state['mode']!r}, this updater is {self.mode!r}")
+        for o, sd in zip(self.optimizers, state["optimizers"]):
+            o.load_state_dict(sd)
+
     def _polyak(self):
         if self._polyak_lists is not None:
             tgts, srcs, w = self._polyak_lists

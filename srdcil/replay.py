@@ -34,8 +34,11 @@ Sampling (``sample(B)``):
    AGS switch with r = 0: their next goal becomes their own goal again).
 4. Demo rows are returned as stored; the batch is randomly permuted.
 
-VC variants (state demo): ``sample(B)`` returns ``B`` training rows (the SAC batch is 100 % training
-transitions) and ``sample_value_states(B)`` returns the V batch: ``round(demo_fraction * B)`` demo
+VC variants (state demo): by default (``states_in_batch=True``) ``sample(B)`` returns ``B - n_demo``
+training transitions + ``n_demo`` demo *states* with zero fillers for the transition-only entries
+(``DCILSACLoss`` uses them for value cloning only: Q and actor losses see the training rows, the V
+batch is exactly 80/20). With ``states_in_batch=False``, ``sample(B)`` returns ``B`` training rows
+and ``sample_value_states(B)`` returns the V batch: ``round(demo_fraction * B)`` demo
 states + training states, keys ``observation, goal, goal_idx, is_demo, demo_return``, permuted.
 ``sample_value_states`` also works for transition demos (it then takes the demo rows' states).
 Returned tensors are fresh (contiguous, never views of the storage).
@@ -223,6 +226,7 @@ class MixedReplay:
         relabel_fraction: float = 0.5,
         device: torch.device | str = "cpu",
         generator: torch.Generator | None = None,
+        states_in_batch: bool = True,
     ) -> None:
         if capacity < 1:
             raise ValueError(f"MixedReplay: capacity must be >= 1, got {capacity}")
@@ -240,6 +244,8 @@ class MixedReplay:
         self.demo_fraction = float(demo_fraction)
         self.relabel_fraction = float(relabel_fraction)
         self.generator = generator
+        # VC (state demo): put the demo states into the SAC batch itself (one loss call, V batch 80/20)
+        self.states_in_batch = bool(states_in_batch)
 
         self._layout: _Layout | None = None  # transition layout (training rows and DB demo rows)
         # training side: created on the first extend (n_envs is known then)
@@ -421,10 +427,33 @@ class MixedReplay:
     def sample(self, batch_size: int | None = None) -> TensorDictBase:
         """A SAC batch ``TensorDict[B]`` with ``TRANSITION_KEYS`` (see the module docstring)."""
         B = self.batch_size if batch_size is None else int(batch_size)
+        if self.demo_mode == "states" and self.states_in_batch:
+            return self._sample_with_demo_states(B)
         n_demo = self.n_demo(B) if self.demo_mode == "transitions" else 0
         train = self._sample_training(B - n_demo)
         demo = self._rows(self._demo, n_demo, ("f", "i", "b"))[0] if n_demo else None
         return self._mix(train, demo, self._layout)
+
+    def _demo_state_rows(self, n: int) -> TensorDictBase:
+        dl = self._demo_layout
+        d = self._rows(self._demo, n, ("f", "i", "b"))[0]
+        return TensorDict({k: dl.col(d, k) for k in VALUE_STATE_KEYS}, batch_size=[n])
+
+    def _sample_with_demo_states(self, B: int) -> TensorDictBase:
+        """VC batch: ``B - n_demo`` training transitions + ``n_demo`` demo *states* (``is_demo`` True).
+
+        The demo rows carry only ``VALUE_STATE_KEYS``; their other entries are zero fillers, which
+        ``DCILSACLoss`` keeps out of every loss but the value-cloning one.
+        """
+        n_demo = self.n_demo(B)
+        train = self._mix(self._sample_training(B - n_demo), None, self._layout)
+        if n_demo == 0:
+            return train
+        demo = train[:1].expand(n_demo).clone().zero_()
+        demo.update(self._demo_state_rows(n_demo).to(train.device))
+        demo.set("is_demo", torch.ones_like(demo.get("is_demo")))
+        out = torch.cat([train, demo], 0)
+        return out[torch.randperm(B, generator=self.generator, device=self.device)]
 
     def sample_value_states(self, batch_size: int | None = None) -> TensorDictBase:
         """A V batch ``TensorDict[B]`` with ``VALUE_STATE_KEYS``: demo + training states, permuted."""
@@ -436,10 +465,7 @@ class MixedReplay:
         if n_demo == 0:
             vs = train_td
         else:
-            dl = self._demo_layout
-            d = self._rows(self._demo, n_demo, ("f", "i", "b"))[0]
-            demo_td = TensorDict({k: dl.col(d, k) for k in VALUE_STATE_KEYS}, batch_size=[n_demo])
-            vs = torch.cat([train_td, demo_td.to(train_td.device)], 0)
+            vs = torch.cat([train_td, self._demo_state_rows(n_demo).to(train_td.device)], 0)
         return vs[torch.randperm(B, generator=self.generator, device=self.device)]
 
     # ------------------------------------------------------------------ checkpoints

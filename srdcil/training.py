@@ -98,7 +98,7 @@ def goal_transform(env: TransformedEnv):
 
 
 def make_agent(task: Task, cfg: DictConfig, variant: Variant, device):
-    from srdcil.networks import make_actor, make_qvalue, make_value
+    from srdcil.networks import make_actor, make_qvalue, make_value, set_normalization
 
     demo = task.demo
     obs_dim = demo.observations.shape[-1]
@@ -106,18 +106,14 @@ def make_agent(task: Task, cfg: DictConfig, variant: Variant, device):
     n_goals = len(task.goals)
     act_dim = int(cfg.env.action_dim)
     hidden = tuple(cfg.network.hidden)
-    kw = dict(obs_dim=obs_dim, goal_dim=goal_dim, num_goals=n_goals, hidden=hidden)
-    actor = make_actor(action_dim=act_dim, **kw)
-    qvalue = make_qvalue(action_dim=act_dim, **kw)
-    value = make_value(**kw) if variant.value_cloning else None
-    # Fixed input normalisation from the demonstration (the authors freeze running stats after
-    # warm-up; the demo covers the region the agent must learn, so its statistics serve the same role).
-    obs, g = demo.observations, demo.achieved_goals
-    for net in (actor, qvalue, value):
-        if net is not None:
-            for m in net.modules():
-                if hasattr(m, "set_normalization"):
-                    m.set_normalization(obs, g)
+    actor = make_actor(obs_dim, goal_dim, n_goals, act_dim, hidden)
+    qvalue = make_qvalue(obs_dim, goal_dim, n_goals, act_dim, hidden)
+    value = make_value(obs_dim, goal_dim, n_goals, hidden) if variant.value_cloning else None
+    # Fixed input normalisation from the demonstration. The authors freeze running statistics after
+    # 500 random warm-up steps; the demo covers the region the agent must learn, so its statistics
+    # serve the same purpose and are known before the first step.
+    nets = [m for m in (actor, qvalue, value) if m is not None]
+    set_normalization(*nets, obs=demo.observations, goal=demo.achieved_goals)
     return actor.to(device), qvalue.to(device), (value.to(device) if value is not None else None)
 
 
@@ -129,7 +125,7 @@ def make_loss_and_updater(cfg: DictConfig, actor, qvalue, value):
     loss = DCILSACLoss(actor, qvalue, value, gamma=o.gamma, alpha=o.alpha, learn_alpha=o.learn_alpha,
                        target_clip=clip, entropy_backup=o.entropy_backup, vc_coef=o.get("vc_coef", 1.0))
     updater = DCILUpdater(loss, lr_actor=o.lr_actor, lr_critic=o.lr_critic, lr_value=o.get("lr_value", o.lr_critic),
-                          tau=o.tau, compile=bool(cfg.get("compile", False)),
+                          tau=o.tau, mode=o.get("update_mode", "sequential"), compile=bool(cfg.get("compile", False)),
                           cudagraphs=bool(cfg.get("cudagraphs", False)))
     return loss, updater
 

@@ -300,6 +300,16 @@ def test_value_states_mode():
     rb = MixedReplay(GOALS, RADIUS, capacity=1000, demo=demo, generator=torch.Generator().manual_seed(10))
     assert rb.demo_mode == "states"
     rb.extend(Streams().batch(30))
+    # default: the demo states ride in the SAC batch (exact split, zero fillers, stored V_demo)
+    b = rb.sample(256)
+    assert int(b["is_demo"].sum()) == 51
+    assert (b["demo_return"][b["is_demo"]] == 3.0).all()
+    assert (b["action"][b["is_demo"].squeeze(-1)] == 0).all()
+    assert (b["demo_return"][~b["is_demo"]] == 0.0).all()
+    # states_in_batch=False: SAC batch of training rows only, V batch from sample_value_states
+    rb = MixedReplay(GOALS, RADIUS, capacity=1000, demo=demo, generator=torch.Generator().manual_seed(10),
+                     states_in_batch=False)
+    rb.extend(Streams().batch(30))
     b = rb.sample(256)
     assert not b["is_demo"].any()  # SAC batch: training rows only
     v = rb.sample_value_states(256)
