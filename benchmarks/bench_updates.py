@@ -193,5 +193,23 @@ def main():
         run_size("fetch", (268, 6, 7, 9), (512, 512, 512), args.seconds, args.sequential, args.compile)
 
 
+def plain_rate_for_recipe(cfg, seconds: float = 5.0) -> float:
+    """Plain-PyTorch update rate (the limit) for the networks and batch of a recipe config."""
+    from srdcil.tasks import make_task
+    from srdcil.training import get_variant
+
+    task = make_task(cfg.env)
+    dims = (task.demo.observations.shape[-1], task.goals.goals.shape[-1], len(task.goals), int(cfg.env.action_dim))
+    hidden = tuple(cfg.network.hidden)
+    vc = get_variant(cfg.variant).value_cloning
+    torch.manual_seed(0)
+    td = make_batch(int(cfg.optim.batch_size), *dims)
+    pin = plain_inputs(td)
+    plain = PlainSAC(dims, hidden, with_value=vc)
+    for _ in range(5):
+        plain.step(pin)
+    return statistics.median(time_block(lambda: plain.step(pin), 1.0) for _ in range(max(3, int(seconds))))
+
+
 if __name__ == "__main__":
     main()

@@ -7,7 +7,7 @@ every other piece of the pipeline.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -79,9 +79,14 @@ def _dubins_task(env_cfg, demo, goals) -> Task:
 
 
 def _fetch_task(env_cfg, demo, goals) -> Task:
-    from srdcil.envs.fetch import FetchShelfTorchEnv
+    from srdcil.envs.fetch import FetchShelfTorchEnv, short_observation
 
     obs_dim = int(env_cfg.get("obs_dim", 268))
+    if demo.observations.shape[-1] != obs_dim:
+        if obs_dim != 268 or demo.observations.shape[-1] != 604:
+            raise ValueError(f"env.obs_dim={obs_dim} but the demonstration's observations are "
+                             f"{demo.observations.shape[-1]}-D (expected 604 or 268)")
+        demo = replace(demo, observations=short_observation(demo.observations))
 
     def make_base_env(batch_size: int, device="cpu"):
         return FetchShelfTorchEnv(batch_size=batch_size, device=device, obs_dim=obs_dim)

@@ -11,6 +11,7 @@ Public API:
 import gymnasium as _gym
 
 from .core import (
+    short_observation,
     ACT_DIM,
     GOAL_DIM,
     OBS_BODIES,
@@ -29,6 +30,7 @@ if GYM_ID not in _gym.registry:
     _gym.register(id=GYM_ID, entry_point="srdcil.envs.fetch.gym_env:FetchShelfGymEnv", max_episode_steps=300)
 
 __all__ = [
+    "short_observation",
     "ACT_DIM",
     "GOAL_DIM",
     "GYM_ID",

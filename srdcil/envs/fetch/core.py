@@ -36,6 +36,14 @@ N_SUBSTEPS = 80
 DT_ENV = N_SUBSTEPS * _model.TIMESTEP
 OBS_DIM_FULL = 604
 OBS_DIM_SHORT = 268
+
+
+def short_observation(obs):
+    """The 268-D observation from a 604-D one (numpy or torch, ``[..., 604]``): the 216 kinematic
+    values, zero padded, as the authors' DCIL-II code used."""
+    out = obs[..., :OBS_DIM_SHORT] * 0
+    out[..., :216] = obs[..., :216]
+    return out
 GOAL_DIM = 6
 ACT_DIM = 9
 GRIPPER_SLICE = slice(84, 87)
@@ -227,9 +235,7 @@ class FetchShelfEnv:
         obs[108:162] = (lin * DT_ENV).reshape(-1)
         obs[162:216] = (ang * DT_ENV).reshape(-1)
         if self.obs_dim == OBS_DIM_SHORT:
-            out = np.zeros(OBS_DIM_SHORT)
-            out[:216] = obs[:216]
-            return out
+            return short_observation(obs)
         # contacts
         contacts = np.zeros(N_PAIRS)
         if d.ncon:
