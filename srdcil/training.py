@@ -77,13 +77,15 @@ def setup_runtime(cfg: DictConfig) -> torch.device:
 
 
 def make_env(task: Task, n_envs: int, device, *, ags: bool, ags_k: int, critic=None,
-             learn_thresholds: bool = True, thresholds=None, extra_transforms=()) -> TransformedEnv:
+             learn_thresholds: bool = True, thresholds=None, threshold_window=None,
+             extra_transforms=()) -> TransformedEnv:
     """Base env (single reset state) + the goal-sequence transform (+ optional extra transforms)."""
     from srdcil.transforms import GoalSequenceTransform
 
     gst = GoalSequenceTransform(
         task.goals.goals.to(device), task.goals.radius, task.max_steps_per_goal,
         ags=ags, ags_k=ags_k, critic=critic, learn_thresholds=learn_thresholds, thresholds=thresholds,
+        threshold_window=threshold_window,
     )
     return TransformedEnv(task.make_base_env(n_envs, device), Compose(gst, *extra_transforms, InitTracker()))
 
@@ -271,7 +273,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
         raise ValueError(f"reset_scheme={scheme!r}: expected 'single' (SR-DCIL) or 'demo_states' (DCIL-II)")
     extra = demo_reset_transforms(task, device) if scheme == "demo_states" else []
     env = make_env(task, int(cfg.env.n_envs), device, ags=variant.ags, ags_k=int(cfg.ags.k), critic=critic,
-                   extra_transforms=extra)
+                   threshold_window=cfg.ags.get("threshold_window"), extra_transforms=extra)
     env.set_seed(int(cfg.seed))
     eval_env = make_env(task, 1, device, ags=variant.ags, ags_k=int(cfg.ags.k), critic=critic,
                         learn_thresholds=False, thresholds=goal_transform(env).ags_thresholds)

@@ -311,6 +311,32 @@ def test_ags_short_attempt_uses_oldest_q_and_running_max_batched():
     assert torch.isnan(t.ags_thresholds[1:]).all()
 
 
+def test_ags_threshold_window_follows_recent_successes_and_unsets_idle_goals():
+    # window of 6 env steps = 3 vector steps of a batch of 2
+    critic = ScriptedCritic([[0.7, 0.9]])
+    env = make_env(goals=GOALS_1D, t_max=10, batch=(2,), ags=True, ags_k=2, critic=critic, threshold_window=6)
+    t = env.transform
+    run(env, acts(1.0, batch=(2,)))  # success: θ_0 set at once (active and window tables)
+    assert t.ags_thresholds[0].item() == pytest.approx(0.9)
+    assert t.ags_thresholds_next[0].item() == pytest.approx(0.9)
+    critic.values, critic.calls = [[0.3, 0.3]] * 2, 0
+    run(env, acts(0.0, 0.0, batch=(2,)))  # no success; 6 env steps: window 1 rolls
+    assert t.ags_thresholds[0].item() == pytest.approx(0.9)
+    assert torch.isnan(t.ags_thresholds_next).all()
+    # window 2: a lower pre-success Q; active θ keeps its max until the roll, then drops to it
+    critic.values, critic.calls = [[0.4, 0.5]], 0
+    run(env, acts(1.0, batch=(2,)))
+    assert t.ags_thresholds[0].item() == pytest.approx(0.9)
+    assert t.ags_thresholds_next[0].item() == pytest.approx(0.5)
+    critic.values, critic.calls = [[0.0, 0.0]] * 2, 0
+    run(env, acts(0.0, 0.0, batch=(2,)))
+    assert t.ags_thresholds[0].item() == pytest.approx(0.5)  # not the all-time max 0.9
+    # window 3 without any real success: goal 0 is unset again (AGS off until it is reached)
+    critic.values, critic.calls = [[0.0, 0.0]] * 3, 0
+    run(env, acts(0.0, 0.0, 0.0, batch=(2,)))
+    assert torch.isnan(t.ags_thresholds).all()
+
+
 def test_ags_armed_at_last_goal_truncates_and_shared_thresholds():
     goals = torch.tensor([[1.0], [2.0]])
     shared = torch.tensor([float("nan"), 0.5])

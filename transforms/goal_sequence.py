@@ -27,6 +27,15 @@ Semantics of one step, for an env on goal i with budget b (steps left) at time t
 * the base env's own ``terminated`` is kept in ``env_terminated`` and OR-ed into ``terminated``;
   ``done`` = terminated | truncated | base done.
 
+Threshold windows (``threshold_window=W``). With an all-time running max, a θ_i set early in
+training, when Q̄ is still near 0, stays far below the later Q̄ of almost any state, so AGS fires at
+the first step of every attempt and switches after k steps; goals are then never reached for real,
+θ never rises again, and training stalls (seen on the reduced maze chain of tests/test_training.py:
+0 goals reached after 8000 env steps with ``db_ags``). With windows, θ_i is learnt anew from the
+real successes of each window of W env steps, so it follows the critic, and a goal with no real
+success in a window has AGS switched off until it is reached again, which breaks that loop. Within
+a window θ_i is still raised immediately on every real success (and set on the first one).
+
 Threshold learning (``ags=True`` and ``learn_thresholds=True``): the last k critic values of the
 current goal attempt are kept per env in ``ags_q_hist`` (float32 [k], oldest first, NaN = empty).
 On every real success at goal i at step t, θ_i ← max(θ_i, Q_{t−k}). If the attempt is shorter
@@ -72,6 +81,10 @@ class GoalSequenceTransform(Transform):
             threshold table; default: a fresh all-NaN (unset) table. Sharing holds as long as
             the transform is not moved to another device (``.to()`` would copy the buffer).
         onehot_key: if given, also write the one-hot index ``[N]`` float32 under this key.
+        threshold_window: ``None`` (default): θ_i is a running max over the whole run, as the paper
+            states. An int W: θ is learnt over windows of W env steps (all envs counted); at the end
+            of each window θ_i becomes the running max of the pre-success Q values seen *in that
+            window*, unset if goal i had no real success in it. See the module docstring for why.
 
     Entries written (root and ``next``): ``goal`` float32 [G], ``goal_idx`` int64 [1],
     ``goal_budget`` int64 [1], ``ags_armed`` bool [1], ``success`` bool [1],
@@ -99,6 +112,7 @@ class GoalSequenceTransform(Transform):
         learn_thresholds: bool = True,
         thresholds: torch.Tensor | None = None,
         onehot_key: str | None = None,
+        threshold_window: int | None = None,
     ):
         goals = torch.as_tensor(goals)
         if goals.ndim != 2 or goals.shape[0] < 1:
@@ -141,6 +155,12 @@ class GoalSequenceTransform(Transform):
         self.ags_k = int(ags_k)
         self.learn_thresholds = bool(learn_thresholds)
         self.__dict__["_critic"] = critic
+        if threshold_window is not None and int(threshold_window) < 1:
+            raise ValueError(f"GoalSequenceTransform: `threshold_window` must be >= 1 or None, got {threshold_window}")
+        self.threshold_window = None if threshold_window is None else int(threshold_window)
+        # θ learnt during the current window (rolled into ags_thresholds at the window's end)
+        self.register_buffer("ags_thresholds_next", torch.full_like(thresholds, float("nan")))
+        self._window_steps = 0
 
     # ------------------------------------------------------------------ public helpers
     @property
@@ -158,6 +178,14 @@ class GoalSequenceTransform(Transform):
     def reset_thresholds(self) -> None:
         """Unset all AGS thresholds (in place, so a shared table is cleared for every user)."""
         self.ags_thresholds.fill_(float("nan"))
+        self.ags_thresholds_next.fill_(float("nan"))
+
+    def roll_thresholds(self) -> None:
+        """End a threshold window: θ ← the thresholds learnt in this window (unset for goals with no
+        real success in it), and start a new, empty window."""
+        self.ags_thresholds.copy_(self.ags_thresholds_next)
+        self.ags_thresholds_next.fill_(float("nan"))
+        self._window_steps = 0
 
     # ------------------------------------------------------------------ specs
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
@@ -268,6 +296,10 @@ class GoalSequenceTransform(Transform):
                     if success.device.type != "cpu" or bool(success.any()):
                         self._update_thresholds(idx, success, hist, q)
                     hist = torch.cat([hist[..., 1:], q], dim=-1)
+                    if self.threshold_window is not None:
+                        self._window_steps += idx.numel()
+                        if self._window_steps >= self.threshold_window:
+                            self.roll_thresholds()
 
         spent = (budget <= 0) & not_success
         switch = (success | (spent & armed)) & ~last
@@ -317,12 +349,15 @@ class GoalSequenceTransform(Transform):
         n_empty = torch.isnan(hist).sum(-1, keepdim=True)
         q_back = cand.gather(-1, n_empty).reshape(-1)  # oldest Q of the attempt, at most k back
         ok = success.reshape(-1)
-        theta = self.ags_thresholds
-        neg_inf = torch.tensor(float("-inf"), dtype=theta.dtype, device=theta.device)
-        work = torch.where(torch.isnan(theta), neg_inf, theta)
-        vals = torch.where(ok, q_back.to(theta.dtype), neg_inf)
-        work = work.scatter_reduce(0, idx.reshape(-1), vals, reduce="amax", include_self=True)
-        theta.copy_(torch.where(torch.isinf(work) & (work < 0), float("nan"), work))
+        tables = [self.ags_thresholds]
+        if self.threshold_window is not None:
+            tables.append(self.ags_thresholds_next)
+        for theta in tables:
+            neg_inf = torch.tensor(float("-inf"), dtype=theta.dtype, device=theta.device)
+            work = torch.where(torch.isnan(theta), neg_inf, theta)
+            vals = torch.where(ok, q_back.to(theta.dtype), neg_inf)
+            work = work.scatter_reduce(0, idx.reshape(-1), vals, reduce="amax", include_self=True)
+            theta.copy_(torch.where(torch.isinf(work) & (work < 0), float("nan"), work))
 
     def __repr__(self) -> str:
         return (
