@@ -11,6 +11,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 
@@ -95,4 +96,59 @@ def _fetch_task(env_cfg, demo, goals) -> Task:
         ts = rollout.get(("next", "task_success"), None)
         return {} if ts is None else {"task_success": bool(ts.any())}
 
-    return Task("fetch", demo, goals, make_base_env, env_cfg.max_steps_per_goal, eval_metrics, None)
+    def plot_rollout(rollout: TensorDictBase, path: Path) -> None:
+        plot_fetch_rollout(rollout, demo, goals, path, obs_dim=obs_dim)
+
+    return Task("fetch", demo, goals, make_base_env, env_cfg.max_steps_per_goal, eval_metrics, plot_rollout)
+
+
+def plot_fetch_rollout(rollout: TensorDictBase, demo: Demonstration, goals: GoalSequence, path: Path,
+                       obs_dim: int = 268, n_frames: int = 6) -> None:
+    """Top (x, y) and side (y, z) views of the gripper and object paths of an evaluation rollout,
+    beside the demonstration, its goals and the target compartment. When a GL backend exists
+    (EGL/OSMesa), also an image strip ``<path>_frames.png`` of the rollout replayed with rendering."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    from srdcil.envs.fetch import FetchShelfEnv, rendering_available
+    from srdcil.envs.fetch.core import SUCCESS_BOX
+
+    ag = torch.cat([rollout["achieved_goal"][:1], rollout["next", "achieved_goal"]], 0).cpu()
+    dg, g = demo.achieved_goals.cpu(), goals.goals.cpu()
+    fig, axes = plt.subplots(1, 2, figsize=(9, 4))
+    for ax, (a, b), names in zip(axes, ((0, 1), (1, 2)), (("x", "y"), ("y", "z"))):
+        lo, hi = SUCCESS_BOX
+        ax.add_patch(Rectangle((lo[a], lo[b]), hi[a] - lo[a], hi[b] - lo[b], color="tab:green", alpha=0.2,
+                               label="target compartment"))
+        for off, lab, c in ((0, "gripper", "tab:blue"), (3, "object", "tab:orange")):
+            ax.plot(dg[:, off + a], dg[:, off + b], "--", color=c, alpha=0.5, label=f"demo {lab}")
+            ax.plot(ag[:, off + a], ag[:, off + b], "-", color=c, label=f"eval {lab}")
+            ax.scatter(g[:, off + a], g[:, off + b], color=c, s=12)
+        ax.set_xlabel(names[0])
+        ax.set_ylabel(names[1])
+        ax.set_aspect("equal")
+    axes[1].legend(fontsize=7, loc="best")
+    fig.suptitle(path.stem)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    if rendering_available():
+        env = FetchShelfEnv(obs_dim=obs_dim)
+        env.reset()
+        actions = rollout["action"].cpu().numpy()
+        keep = set(torch.linspace(0, len(actions), n_frames).long().tolist())
+        frames = [env.render(320, 240)] if 0 in keep else []
+        for t, a in enumerate(actions, 1):
+            env.step(a)
+            if t in keep:
+                frames.append(env.render(320, 240))
+        fig, axes = plt.subplots(1, len(frames), figsize=(2.4 * len(frames), 2))
+        for ax, im in zip(np.atleast_1d(axes), frames):
+            ax.imshow(im)
+            ax.axis("off")
+        fig.tight_layout()
+        fig.savefig(path.with_name(path.stem + "_frames.png"), dpi=100)
+        plt.close(fig)
