@@ -213,3 +213,20 @@ def test_gymnasium_env():
     assert r == 0.0 and not term and not trunc
     assert "task_success" in info
     env.close()
+
+
+def test_shipped_demo_goal_extraction():
+    """Authors' Fetch extraction (ε 0.5 in the 6-D goal space, 10-25 demo steps per goal)."""
+    from srdcil.demo import load_shipped
+    from srdcil.goals import extract_goals
+    from srdcil.envs.fetch.core import SUCCESS_BOX
+
+    d = load_shipped("fetch")
+    first100 = extract_goals(d, eps=0.5, radius=0.075, min_steps=10, max_steps=25, max_demo_steps=100)
+    assert len(first100) == 7  # the paper's count, with the authors' "first 100 states"
+    whole = extract_goals(d, eps=0.5, radius=0.075, min_steps=10, max_steps=25)
+    assert len(whole) == 12
+    steps = torch.diff(torch.cat([torch.zeros(1, dtype=torch.long), whole.demo_indices]))
+    assert int(steps[:-1].min()) >= 10 and int(steps.max()) <= 25
+    obj = whole.goals[-1, 3:].numpy()  # the last goal: the object inside the compartment
+    assert np.all(obj >= SUCCESS_BOX[0]) and np.all(obj <= SUCCESS_BOX[1])
