@@ -203,9 +203,10 @@ def _wandb_logged_in() -> bool:
         return False
 
 
-def save_checkpoint(path: Path, *, cfg, frames, actor, loss, updater, env, best) -> None:
+def save_checkpoint(path: Path, *, cfg, frames, actor, loss, updater, env, best, replay=None) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     gst = goal_transform(env)
+    tmp = path.with_suffix(".tmp")
     torch.save({
         "frames": frames,
         "actor": actor.state_dict(),
@@ -215,11 +216,15 @@ def save_checkpoint(path: Path, *, cfg, frames, actor, loss, updater, env, best)
         "best": best,
         "config": OmegaConf.to_container(cfg, resolve=True),
         "torch_rng": torch.get_rng_state(),
-    }, path)
+        "replay": None if replay is None else replay.state_dict(),
+    }, tmp)
+    tmp.replace(path)  # never leave a half-written checkpoint behind
 
 
-def load_checkpoint(path, *, actor, loss, updater, env) -> dict:
+def load_checkpoint(path, *, actor, loss, updater, env, replay=None) -> dict:
     ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    if replay is not None and ckpt.get("replay") is not None:
+        replay.load_state_dict(ckpt["replay"])
     actor.load_state_dict(ckpt["actor"])
     loss.load_state_dict(ckpt["loss"])
     updater.load_state_dict(ckpt["updater"])
@@ -283,10 +288,10 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
 
     start_frames, best = 0, {"eval/goals_reached": -1}
     if cfg.get("resume"):
-        ckpt = load_checkpoint(cfg.resume, actor=actor, loss=loss, updater=updater, env=env)
+        ckpt = load_checkpoint(cfg.resume, actor=actor, loss=loss, updater=updater, env=env, replay=replay)
         start_frames, best = int(ckpt["frames"]), ckpt.get("best", best)
-        print(f"[srdcil] resumed from {cfg.resume} at {start_frames} env steps "
-              "(the replay buffer starts empty)")
+        kept = "with its replay buffer" if ckpt.get("replay") is not None else "(the replay buffer starts empty)"
+        print(f"[srdcil] resumed from {cfg.resume} at {start_frames} env steps {kept}")
 
     c = cfg.collector
     total = int(c.total_frames)
@@ -306,6 +311,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
     eval_interval = int(cfg.eval.interval)
     ckpt_interval = int(cfg.checkpoint.interval)
     ckpt_path = run_dir / "checkpoint.pt"
+    ckpt_replay = replay if cfg.checkpoint.get("save_replay", True) else None
 
     frames = start_frames
     update_credit = 0.0
@@ -365,7 +371,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
                              chain=int(last_eval["eval/chain_success"]), refresh=False)
         if frames >= next_ckpt:
             save_checkpoint(ckpt_path, cfg=cfg, frames=frames, actor=actor, loss=loss, updater=updater, env=env,
-                            best=best)
+                            best=best, replay=ckpt_replay)
             next_ckpt += ckpt_interval
         log["time/env_steps_per_s"] = (frames - start_frames) / (time.perf_counter() - t0)
         log["time/updates"] = n_updates
@@ -380,7 +386,8 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
     collector.shutdown()
     pbar.close()
     final = do_eval()
-    save_checkpoint(ckpt_path, cfg=cfg, frames=frames, actor=actor, loss=loss, updater=updater, env=env, best=best)
+    save_checkpoint(ckpt_path, cfg=cfg, frames=frames, actor=actor, loss=loss, updater=updater, env=env, best=best,
+                    replay=ckpt_replay)
     wall = time.perf_counter() - t0
     result = {
         **final,

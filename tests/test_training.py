@@ -116,12 +116,21 @@ def test_checkpoint_and_resume(tmp_path, wiggle_demo):
     train(cfg, run_dir=tmp_path / "a")
     ckpt = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
     assert ckpt["frames"] == 480
-    assert {"actor", "loss", "updater", "ags_thresholds", "config"} <= set(ckpt)
+    assert {"actor", "loss", "updater", "ags_thresholds", "config", "replay"} <= set(ckpt)
     cfg2 = config("sr_dcil_dubins", reduced(wiggle_demo) + ["variant=db_ags", "collector.total_frames=720",
                                                  "stop_on_chain_success=false",
                                                  f"resume={tmp_path / 'a' / 'checkpoint.pt'}"])
     r = train(cfg2, run_dir=tmp_path / "b")
     assert r["env_steps"] == 720
+    # the replay buffer came back with the checkpoint: 480 stored + 240 new transitions
+    ck_b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
+    from srdcil.replay import MixedReplay
+    from srdcil.tasks import make_task
+
+    task = make_task(cfg2.env)
+    rb = MixedReplay(task.goals.goals, task.goals.radius, capacity=10_000)
+    rb.load_state_dict(ck_b["replay"])
+    assert len(rb) == 720
     # only the 240 new env steps were collected and trained on (no second warm-up from scratch)
     assert 0 < r["updates"] <= 240 + 12
     # the resumed run continued from the checkpoint: its first evaluation is logged at step 480
