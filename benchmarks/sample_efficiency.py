@@ -20,6 +20,29 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def read_run(out: Path, variant: str, seed: int, rc=None) -> dict:
+    """Summary of one run directory (also of a run that was stopped early: from its metrics.jsonl)."""
+    res = {"variant": variant, "seed": seed, "rc": rc}
+    curve = []
+    if (out / "metrics.jsonl").exists():
+        for line in (out / "metrics.jsonl").read_text().splitlines():
+            m = json.loads(line)
+            curve.append((m["env_steps"], m.get("eval/goals_reached", 0), m.get("eval/max_zone", 0)))
+    res["curve"] = curve
+    if (out / "result.json").exists():
+        r = json.loads((out / "result.json").read_text())
+        res.update(first_chain_success_step=r["first_chain_success_step"], env_steps=r["env_steps"],
+                   best_goals_reached=r["best_goals_reached"], wall_s=round(r["wall_s"], 1))
+    elif curve:  # stopped before the end
+        firsts = [m for m in (json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines())
+                  if m.get("eval/chain_success")]
+        res.update(first_chain_success_step=firsts[0]["env_steps"] if firsts else None, env_steps=curve[-1][0],
+                   best_goals_reached=max(c[1] for c in curve), stopped_early=True)
+    if curve:
+        res["best_max_zone"] = max(c[2] for c in curve)
+    return res
+
+
 def run_one(variant: str, seed: int, a) -> dict:
     out = Path(a.out) / f"{variant}_s{seed}"
     out.mkdir(parents=True, exist_ok=True)
@@ -32,18 +55,7 @@ def run_one(variant: str, seed: int, a) -> dict:
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", WANDB_MODE="disabled")
     with open(out / "stdout.log", "w") as log:
         rc = subprocess.call(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, env=env)
-    res = {"variant": variant, "seed": seed, "rc": rc}
-    if (out / "result.json").exists():
-        r = json.loads((out / "result.json").read_text())
-        res.update(first_chain_success_step=r["first_chain_success_step"], env_steps=r["env_steps"],
-                   best_goals_reached=r["best_goals_reached"], wall_s=round(r["wall_s"], 1))
-    curve = []
-    if (out / "metrics.jsonl").exists():
-        for line in (out / "metrics.jsonl").read_text().splitlines():
-            m = json.loads(line)
-            curve.append((m["env_steps"], m.get("eval/goals_reached", 0), m.get("eval/max_zone", 0)))
-    res["curve"] = curve
-    return res
+    return read_run(out, variant, seed, rc)
 
 
 def plot(results, path: Path):
@@ -76,12 +88,21 @@ def main():
     p.add_argument("--device", default="cpu")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--out", default="benchmarks/results/sample_efficiency")
+    p.add_argument("--summarize", nargs="+", metavar="RUN_DIR",
+                   help="no runs: summarise existing run dirs named <variant>_s<seed> (also interrupted ones)")
     p.add_argument("extra", nargs="*", help="extra hydra overrides passed to every run")
     a = p.parse_args()
-    jobs = [(v, s) for s in a.seeds for v in a.variants]
-    with ThreadPoolExecutor(a.jobs) as ex:
-        results = list(ex.map(lambda vs: run_one(*vs, a), jobs))
+    if a.summarize:
+        results = []
+        for d in map(Path, a.summarize):
+            variant, seed = d.name.rsplit("_s", 1)
+            results.append(read_run(d, variant, int(seed)))
+    else:
+        jobs = [(v, s) for s in a.seeds for v in a.variants]
+        with ThreadPoolExecutor(a.jobs) as ex:
+            results = list(ex.map(lambda vs: run_one(*vs, a), jobs))
     out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
     with open(out / "runs.jsonl", "w") as f:
         for r in results:
             f.write(json.dumps(r) + "\n")
@@ -89,7 +110,8 @@ def main():
         step = r.get("first_chain_success_step")
         shown = step if step is not None else f"not reached by {r.get('env_steps', '?')}"
         print(f"first_chain_success_{r['variant']}_s{r['seed']}: {shown} env steps "
-              f"(best goals {r.get('best_goals_reached')}, wall {r.get('wall_s')} s, rc {r['rc']})")
+              f"(best goals {r.get('best_goals_reached')}, best zone {r.get('best_max_zone')}, "
+              f"wall {r.get('wall_s')} s{', stopped early' if r.get('stopped_early') else ''})")
     plot(results, out / "goals_reached.png")
     print(f"plot: {out / 'goals_reached.png'}")
 
