@@ -70,11 +70,11 @@ def plot(results, path: Path):
         for r in results:
             if r["variant"] == v and r["curve"]:
                 xs, ys, _ = zip(*r["curve"])
-                ax.plot(xs, ys, label=f"seed {r['seed']}")
+                ax.plot(xs, ys, color=f"C{r['seed'] % 10}", label=f"seed {r['seed']}")
         ax.set_title(v)
+        ax.legend(fontsize=7)
         ax.set_xlabel("env steps")
     axes[0][0].set_ylabel("goals reached (chained eval)")
-    axes[0][-1].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -95,6 +95,8 @@ def main():
     if a.summarize:
         results = []
         for d in map(Path, a.summarize):
+            if not d.is_dir():  # e.g. runs.jsonl / goals_reached.png beside the run dirs
+                continue
             variant, seed = d.name.rsplit("_s", 1)
             results.append(read_run(d, variant, int(seed)))
     else:
