@@ -280,12 +280,16 @@ def rendering_available() -> bool:
     """True when ``mujoco.Renderer`` can create a GL context here (checked once, cached)."""
     global _RENDER_OK
     if _RENDER_OK is None:
+        import warnings
+
         try:
-            m = mujoco.MjModel.from_xml_string("<mujoco><worldbody><geom size='.1'/></worldbody></mujoco>")
-            r = mujoco.Renderer(m, height=8, width=8)
-            r.update_scene(mujoco.MjData(m))
-            r.render()
-            r.close()
+            with warnings.catch_warnings():  # glfw warns loudly without a DISPLAY; the answer is enough
+                warnings.simplefilter("ignore")
+                m = mujoco.MjModel.from_xml_string("<mujoco><worldbody><geom size='.1'/></worldbody></mujoco>")
+                r = mujoco.Renderer(m, height=8, width=8)
+                r.update_scene(mujoco.MjData(m))
+                r.render()
+                r.close()
             _RENDER_OK = True
         except Exception:  # noqa: BLE001 - any GL failure means "not available"
             _RENDER_OK = False
