@@ -91,6 +91,7 @@ def test_each_variant_learns_the_reduced_chain(variant, tmp_path, wiggle_demo):
 def test_dcil_ii_baseline_learns_the_reduced_chain(tmp_path, wiggle_demo):
     cfg = config("dcil_ii_dubins", reduced(wiggle_demo) + ["collector.total_frames=8000"])
     assert cfg.reset_scheme == "demo_states" and cfg.variant == "vanilla"
+    assert cfg.replay.relabel_fraction == 0.8  # the authors' DCIL-II future_p
     r = train(cfg, run_dir=tmp_path)
     assert r["first_chain_success_step"] is not None, f"DCIL-II: best {r['best_goals_reached']} goals"
 
