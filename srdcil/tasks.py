@@ -113,8 +113,8 @@ def plot_fetch_rollout(rollout: TensorDictBase, demo: Demonstration, goals: Goal
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
 
-    from srdcil.envs.fetch import FetchShelfEnv, rendering_available
-    from srdcil.envs.fetch.core import SUCCESS_BOX
+    from srdcil.envs.fetch import rendering_available
+    from srdcil.envs.fetch.core import SUCCESS_BOX, render_strip
 
     ag = torch.cat([rollout["achieved_goal"][:1], rollout["next", "achieved_goal"]], 0).cpu()
     dg, g = demo.achieved_goals.cpu(), goals.goals.cpu()
@@ -136,19 +136,6 @@ def plot_fetch_rollout(rollout: TensorDictBase, demo: Demonstration, goals: Goal
     fig.savefig(path, dpi=100)
     plt.close(fig)
     if rendering_available():
-        env = FetchShelfEnv(obs_dim=obs_dim)
-        env.reset()
         actions = rollout["action"].cpu().numpy()
-        keep = set(torch.linspace(0, len(actions), n_frames).long().tolist())
-        frames = [env.render(320, 240)] if 0 in keep else []
-        for t, a in enumerate(actions, 1):
-            env.step(a)
-            if t in keep:
-                frames.append(env.render(320, 240))
-        fig, axes = plt.subplots(1, len(frames), figsize=(2.4 * len(frames), 2))
-        for ax, im in zip(np.atleast_1d(axes), frames):
-            ax.imshow(im)
-            ax.axis("off")
-        fig.tight_layout()
-        fig.savefig(path.with_name(path.stem + "_frames.png"), dpi=100)
-        plt.close(fig)
+        render_strip(actions, path.with_name(path.stem + "_frames.png"),
+                     torch.linspace(0, len(actions), n_frames).long().tolist(), obs_dim=obs_dim)

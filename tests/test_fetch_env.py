@@ -130,9 +130,32 @@ def test_render_or_clear_error(env):
     if rendering_available():
         img = env.render(64, 48)
         assert img.shape == (48, 64, 3)
+        assert img.std() > 5  # a scene, not a blank frame
     else:
         with pytest.raises(RuntimeError, match="OpenGL"):
             env.render(64, 48)
+
+
+@pytest.mark.skipif(not rendering_available(), reason="no OpenGL backend (EGL/OSMesa) on this machine")
+def test_render_strip_of_demo_actions(tmp_path):
+    import matplotlib.image
+
+    from srdcil.envs.fetch.core import render_strip
+
+    path = tmp_path / "strip.png"
+    render_strip(_demo_arrays()["actions"][:6], path, [0, 3, 6, 99], titles=False, size=(64, 48))
+    img = matplotlib.image.imread(path)
+    assert img.shape[1] > 2.5 * img.shape[0]  # three frames side by side (step 99 is past the end)
+
+
+def test_explicit_mujoco_gl_is_kept():
+    import subprocess
+    import sys
+
+    code = "import os, srdcil; print(os.environ['MUJOCO_GL'])"
+    out = subprocess.run([sys.executable, "-c", code], env={**__import__("os").environ, "MUJOCO_GL": "glfw"},
+                         capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "glfw"
 
 
 def test_shipped_demo_replays_to_success():

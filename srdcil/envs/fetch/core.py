@@ -25,7 +25,7 @@ and our doors are static bodies (their velocities are 0).
 from __future__ import annotations
 
 import itertools
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 import mujoco
@@ -271,6 +271,35 @@ class FetchShelfEnv:
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+
+def render_strip(actions: np.ndarray, path, steps: Sequence[int], obs_dim: int = 604,
+                 titles: bool = True, size: tuple = (320, 240)) -> None:
+    """Replay ``actions`` from reset and save an image strip (PNG) of the frames after the given
+    env ``steps`` (0 = the reset state). Needs a GL backend, like :meth:`FetchShelfEnv.render`."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    env = FetchShelfEnv(obs_dim=obs_dim)
+    env.reset()
+    keep = sorted({int(t) for t in steps if 0 <= t <= len(actions)})
+    frames = [(0, env.render(*size))] if 0 in keep else []
+    for t, a in enumerate(actions, 1):
+        env.step(a)
+        if t in keep:
+            frames.append((t, env.render(*size)))
+    env.close()
+    fig, axes = plt.subplots(1, len(frames), figsize=(2.4 * len(frames), 2.1 if titles else 2))
+    for ax, (t, im) in zip(np.atleast_1d(axes), frames):
+        ax.imshow(im)
+        ax.axis("off")
+        if titles:
+            ax.set_title(f"step {t}", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 _RENDER_OK: Optional[bool] = None

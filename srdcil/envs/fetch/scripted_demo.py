@@ -16,7 +16,9 @@ transit high (elbow up, clear of the door frames), come in front of compartment 
 insert, open. Cartesian targets are approached through a "carrot" at most 8 cm ahead of the gripper;
 waypoints may instead give a joint-space target (synchronised interpolation). The recorded actions replay open-loop from reset (the env is deterministic).
 
-CLI: ``python -m srdcil.envs.fetch.scripted_demo --out srdcil/data/fetch_demo.npz``
+CLI: ``python -m srdcil.envs.fetch.scripted_demo --out srdcil/data/fetch_demo.npz`` regenerates the
+shipped demonstration; ``MUJOCO_GL=egl python -m srdcil.envs.fetch.scripted_demo --strip demo.png``
+(or ``MUJOCO_GL=osmesa``) renders the shipped one as an image strip instead.
 """
 from __future__ import annotations
 
@@ -280,7 +282,21 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", default="srdcil/data/fetch_demo.npz")
     p.add_argument("--quiet", action="store_true")
+    p.add_argument("--strip", metavar="PNG", help="render the shipped demonstration to an image strip and exit "
+                   "(needs MUJOCO_GL=egl or osmesa)")
     args = p.parse_args(argv)
+    if args.strip:
+        from srdcil.demo import load_shipped
+        from srdcil.envs.fetch.core import render_strip, rendering_available
+
+        if not rendering_available():
+            p.error("no OpenGL backend: set MUJOCO_GL=egl (or osmesa, e.g. apt install libosmesa6)")
+        demo = load_shipped("fetch")
+        T, s = len(demo.actions), demo.meta.get("success_step")
+        steps = sorted({0, T // 5, 2 * T // 5, 3 * T // 5, 4 * T // 5, s or T, T})
+        render_strip(demo.actions.numpy(), args.strip, steps)
+        print(f"saved {args.strip} (steps {steps})")
+        return
     t0 = time.time()
     rec = generate(verbose=not args.quiet)
     T = len(rec["actions"])
