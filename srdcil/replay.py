@@ -470,9 +470,15 @@ class MixedReplay:
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:
-        """Training storage and counters (the demo is rebuilt from its source)."""
+        """Training storage and counters (the demo is rebuilt from its source). Only the filled rows
+        of the storage are kept, so a checkpoint's size follows what was collected, not the capacity."""
+        train = None
+        if self._train is not None:
+            n = len(self._train)
+            train = {"rows": self._train.storage.get(torch.arange(n, device=self.device)).clone(),
+                     "cursor": int(self._train._writer._cursor)}
         return {
-            "train": None if self._train is None else self._train.state_dict(),
+            "train": train,
             "n_envs": self._n_envs,
             "t": self._t,
             "att_count": self._att_count,
@@ -488,7 +494,12 @@ class MixedReplay:
             self._layout = _Layout.__new__(_Layout)
             self._layout.__dict__.update(state["layout"])
         self._init_train(int(state["n_envs"]))
-        self._train.load_state_dict(state["train"])
+        if "rows" in state["train"]:
+            if state["train"]["rows"].numel():
+                self._train.extend(state["train"]["rows"].to(self.device))  # rows 0..n-1, in place
+            self._train._writer._cursor = state["train"]["cursor"]
+        else:  # checkpoints written before 0.1.0's compact format: torchrl's whole-storage state
+            self._train.load_state_dict(state["train"])
         self._t = int(state["t"])
         self._att_count = state["att_count"].to(self.device).clone()
         self._att_last = state["att_last"].to(self.device).clone()

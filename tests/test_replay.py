@@ -337,6 +337,22 @@ def test_state_dict_roundtrip():
     check_relabelled_rows(rb2.sample(1024), s, newest_t=39, ring=50)
 
 
+def test_state_dict_roundtrip_after_the_ring_wrapped_keeps_only_filled_rows():
+    s = Streams()
+    rb = MixedReplay(GOALS, RADIUS, capacity=100, relabel_fraction=1.0)
+    for _ in range(3):  # 60 steps per env stream > ring of 50: the oldest were overwritten
+        rb.extend(s.batch(20))
+    state = rb.state_dict()
+    assert state["train"]["rows"].shape[0] == 100
+    rb2 = MixedReplay(GOALS, RADIUS, capacity=100, relabel_fraction=1.0)
+    rb2.load_state_dict(state)
+    rb2.extend(s.batch(20))
+    check_relabelled_rows(rb2.sample(1024), s, newest_t=79, ring=50)
+    big = MixedReplay(GOALS, RADIUS, capacity=1_000_000)
+    big.extend(Streams().batch(20))
+    assert big.state_dict()["train"]["rows"].shape[0] == 40  # not the million-row capacity
+
+
 def test_sample_speed():
     rb = MixedReplay(GOALS, RADIUS, capacity=100_000, demo=make_demo(), generator=torch.Generator().manual_seed(0))
     s = Streams(n_envs=4)
