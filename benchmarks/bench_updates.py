@@ -12,6 +12,7 @@ each method gets >= --seconds in total; the reported rate is the median over its
 ratio is the median of the per-round ratios.
 
     python benchmarks/bench_updates.py [--seconds 3] [--fetch] [--sequential] [--compile]
+    python benchmarks/bench_updates.py --device cuda --compile --cudagraphs --fetch   # eager/compiled/graph
 """
 from __future__ import annotations
 
@@ -51,11 +52,11 @@ def make_batch(B, obs, goal, N, act, demo_frac=0.2, seed=0):
 class PlainSAC:
     """Hand-written SAC update on the bare core networks (no TensorDict, no LossModule)."""
 
-    def __init__(self, dims, hidden, with_value=False, lr=1e-3):
+    def __init__(self, dims, hidden, with_value=False, lr=1e-3, device="cpu"):
         obs, goal, N, act = dims
-        self.actor = make_actor(obs, goal, N, act, hidden).module[0].module  # GaussianPolicyNet
-        self.q = make_qvalue(obs, goal, N, act, hidden).module  # TwinQ
-        self.v = make_value(obs, goal, N, hidden).module if with_value else None
+        self.actor = make_actor(obs, goal, N, act, hidden).module[0].module.to(device)  # GaussianPolicyNet
+        self.q = make_qvalue(obs, goal, N, act, hidden).module.to(device)  # TwinQ
+        self.v = make_value(obs, goal, N, hidden).module.to(device) if with_value else None
         nets = [self.q] + ([self.v] if with_value else [])
         self.srcs = [p for n in nets for p in n.parameters()]
         self.tgts = [p.detach().clone() for p in self.srcs]
@@ -117,46 +118,59 @@ def plain_inputs(td):
     }
 
 
+def _sync():
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        torch.cuda.synchronize()
+
+
 def time_block(fn, seconds):
     n, t0 = 0, time.perf_counter()
     while True:
         fn()
         n += 1
+        if n % 8:
+            continue
+        _sync()  # GPU work is asynchronous: count only finished updates
         dt = time.perf_counter() - t0
         if dt >= seconds:
             return n / dt
 
 
-def run_size(name, dims, hidden, seconds, sequential=False, compiled=False, B=256):
+def run_size(name, dims, hidden, seconds, sequential=False, compiled=False, B=256, device="cpu",
+             cudagraphs=False):
     torch.manual_seed(0)
     obs, goal, N, act = dims
-    td = make_batch(B, obs, goal, N, act)
+    td = make_batch(B, obs, goal, N, act).to(device)
     pin = plain_inputs(td)
     methods = {}
-    plain = PlainSAC(dims, hidden)
+
+    def dcil(value=False, **kw):
+        v = make_value(obs, goal, N, hidden) if value else None
+        loss = DCILSACLoss(make_actor(*dims, hidden), make_qvalue(*dims, hidden), v).to(device)
+        return DCILUpdater(loss, **kw)
+
+    plain = PlainSAC(dims, hidden, device=device)
     methods["plain"] = lambda: plain.step(pin)
-    loss = DCILSACLoss(make_actor(*dims, hidden), make_qvalue(*dims, hidden))
-    up = DCILUpdater(loss)
+    up = dcil()
     methods["dcil"] = lambda: up.step(td)
-    plain_vc = PlainSAC(dims, hidden, with_value=True)
+    plain_vc = PlainSAC(dims, hidden, with_value=True, device=device)
     methods["plain_vc"] = lambda: plain_vc.step(pin)
-    loss_vc = DCILSACLoss(
-        make_actor(*dims, hidden), make_qvalue(*dims, hidden), make_value(obs, goal, N, hidden)
-    )
-    up_vc = DCILUpdater(loss_vc)
+    up_vc = dcil(value=True)
     methods["dcil_vc"] = lambda: up_vc.step(td)
     if sequential:
-        loss_s = DCILSACLoss(make_actor(*dims, hidden), make_qvalue(*dims, hidden))
-        up_s = DCILUpdater(loss_s, mode="sequential")
+        up_s = dcil(mode="sequential")
         methods["dcil_sequential"] = lambda: up_s.step(td)
-    if compiled:
-        loss_c = DCILSACLoss(make_actor(*dims, hidden), make_qvalue(*dims, hidden))
-        up_c = DCILUpdater(loss_c, compile=True)
+    for label, kw, wanted in (("compiled", {"compile": True}, compiled),
+                              ("cudagraph", {"cudagraphs": True}, cudagraphs)):
+        if not wanted:
+            continue
+        up_x = dcil(**kw)
         t0 = time.perf_counter()
         for _ in range(3):
-            up_c.step(td)
-        print(f"compile_time_{name}: {time.perf_counter() - t0:.1f} s")
-        methods["dcil_compiled"] = lambda: up_c.step(td)
+            up_x.step(td)
+        _sync()
+        print(f"{label}_setup_time_{name}: {time.perf_counter() - t0:.1f} s")
+        methods[f"dcil_{label}"] = (lambda u: lambda: u.step(td))(up_x)
     for fn in methods.values():  # warm-up
         for _ in range(5):
             fn()
@@ -173,6 +187,10 @@ def run_size(name, dims, hidden, seconds, sequential=False, compiled=False, B=25
         pairs.append(("dcil_sequential", "plain"))
     if compiled:
         pairs.append(("dcil_compiled", "plain"))
+        pairs.append(("dcil_compiled", "dcil"))
+    if cudagraphs:
+        pairs.append(("dcil_cudagraph", "plain"))
+        pairs.append(("dcil_cudagraph", "dcil"))
     for a, b in pairs:
         ratio = statistics.median(x / y for x, y in zip(rates[a], rates[b]))
         print(f"ratio_{a}_to_{b}_{name}: {ratio:.2f} x")
@@ -184,13 +202,19 @@ def main():
     p.add_argument("--fetch", action="store_true", help="also run the Fetch size (slower)")
     p.add_argument("--sequential", action="store_true", help="also time DCILUpdater(mode='sequential')")
     p.add_argument("--compile", action="store_true", help="also time DCILUpdater(compile=True)")
+    p.add_argument("--cudagraphs", action="store_true",
+                   help="also time DCILUpdater(cudagraphs=True) (CUDA-graph capture; needs --device cuda)")
+    p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args()
+    if args.cudagraphs and not str(args.device).startswith("cuda"):
+        p.error("--cudagraphs captures CUDA graphs: use it with --device cuda")
     torch.set_num_threads(args.threads)
     print(f"torch_threads: {torch.get_num_threads()} threads")
-    run_size("dubins", (3, 2, 19, 1), (400, 300), args.seconds, args.sequential, args.compile)
+    kw = dict(sequential=args.sequential, compiled=args.compile, device=args.device, cudagraphs=args.cudagraphs)
+    run_size("dubins", (3, 2, 19, 1), (400, 300), args.seconds, **kw)
     if args.fetch:
-        run_size("fetch", (268, 6, 7, 9), (512, 512, 512), args.seconds, args.sequential, args.compile)
+        run_size("fetch", (268, 6, 7, 9), (512, 512, 512), args.seconds, **kw)
 
 
 def plain_rate_for_recipe(cfg, seconds: float = 5.0) -> float:
@@ -203,9 +227,9 @@ def plain_rate_for_recipe(cfg, seconds: float = 5.0) -> float:
     hidden = tuple(cfg.network.hidden)
     vc = get_variant(cfg.variant).value_cloning
     torch.manual_seed(0)
-    td = make_batch(int(cfg.optim.batch_size), *dims)
+    td = make_batch(int(cfg.optim.batch_size), *dims).to(cfg.device)
     pin = plain_inputs(td)
-    plain = PlainSAC(dims, hidden, with_value=vc)
+    plain = PlainSAC(dims, hidden, with_value=vc, device=cfg.device)
     for _ in range(5):
         plain.step(pin)
     return statistics.median(time_block(lambda: plain.step(pin), 1.0) for _ in range(max(3, int(seconds))))
