@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
@@ -114,6 +115,12 @@ def main():
         print(f"first_chain_success_{r['variant']}_s{r['seed']}: {shown} env steps "
               f"(best goals {r.get('best_goals_reached')}, best zone {r.get('best_max_zone')}, "
               f"wall {r.get('wall_s')} s{', stopped early' if r.get('stopped_early') else ''})")
+    for v in sorted({r["variant"] for r in results}):
+        runs = [r for r in results if r["variant"] == v]
+        solved = sorted(r["first_chain_success_step"] for r in runs if r.get("first_chain_success_step") is not None)
+        print(f"seeds_solved_{v}: {len(solved)}/{len(runs)} seeds")
+        if solved and len(solved) == len(runs):  # a median over solved runs only would flatter
+            print(f"median_first_chain_success_{v}: {statistics.median(solved):.0f} env steps")
     plot(results, out / "goals_reached.png")
     print(f"plot: {out / 'goals_reached.png'}")
 
