@@ -475,8 +475,7 @@ class MixedReplay:
         train = None
         if self._train is not None:
             n = len(self._train)
-            train = {"rows": self._train.storage.get(torch.arange(n, device=self.device)).clone(),
-                     "cursor": int(self._train._writer._cursor)}
+            train = {"rows": self._train.storage.get(torch.arange(n, device=self.device)).clone()}
         return {
             "train": train,
             "n_envs": self._n_envs,
@@ -494,11 +493,10 @@ class MixedReplay:
             self._layout = _Layout.__new__(_Layout)
             self._layout.__dict__.update(state["layout"])
         self._init_train(int(state["n_envs"]))
-        if "rows" in state["train"]:
+        if "rows" in state["train"]:  # rows 0..n-1 back in place; extend() derives the write slot from _t
             if state["train"]["rows"].numel():
-                self._train.extend(state["train"]["rows"].to(self.device))  # rows 0..n-1, in place
-            self._train._writer._cursor = state["train"]["cursor"]
-        else:  # checkpoints written before 0.1.0's compact format: torchrl's whole-storage state
+                self._train.extend(state["train"]["rows"].to(self.device))
+        else:  # checkpoints written before the compact format: torchrl's whole-storage state
             self._train.load_state_dict(state["train"])
         self._t = int(state["t"])
         self._att_count = state["att_count"].to(self.device).clone()

@@ -149,11 +149,12 @@ def test_render_strip_of_demo_actions(tmp_path):
 
 
 def test_explicit_mujoco_gl_is_kept():
+    import os
     import subprocess
     import sys
 
     code = "import os, srdcil; print(os.environ['MUJOCO_GL'])"
-    out = subprocess.run([sys.executable, "-c", code], env={**__import__("os").environ, "MUJOCO_GL": "glfw"},
+    out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "MUJOCO_GL": "glfw"},
                          capture_output=True, text=True, check=True).stdout.strip()
     assert out == "glfw"
 
