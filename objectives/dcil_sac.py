@@ -513,7 +513,7 @@ class DCILUpdater:
             ``"sequential"`` (authors' order: critic/V step, Polyak, then actor/alpha step with the
             updated critic).
         compile: wrap the update with ``torch.compile``. On the project's 2-core CPU it was
-            *slower* (0.83x of eager at the Dubins size, 0.92x at the Fetch size, after a 5-20 s
+            *slower* (0.85x of eager at the Dubins size, 0.90x at the Fetch size, after a 5-15 s
             compile; ``benchmarks/bench_updates.py --compile``), so leave it off on CPU.
         cudagraphs: on CUDA, capture the update with ``tensordict.nn.CudaGraphModule`` (ignored on
             CPU). Adam is then built with ``capturable=True``.
