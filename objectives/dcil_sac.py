@@ -25,9 +25,11 @@ With V (``vc`` variants, SAC-v1)::
 
 Demo rows of a VC batch are *states only*: they enter ``loss_value_cloning`` and nothing else (the
 Q loss and, unless ``actor_on_demo_states=True``, the actor loss use the training rows only).
-**Normalisation**: each loss is a mean over its own rows: ``loss_value`` = mean over training rows,
-``loss_value_cloning`` = ``vc_coef`` x mean over demo rows (0 when the batch has none),
-``loss_qvalue`` / ``loss_actor`` = mean over the rows they use. Every reduction is a masked sum
+**Normalisation**: the V loss is the paper's *one* MSE over the whole mixed V batch of n rows,
+reported as two entries whose sum is that mean: ``loss_value`` = sum over training rows / n,
+``loss_value_cloning`` = ``vc_coef`` x sum over demo rows / n (0 when the batch has none), so demo
+states weigh exactly their share of rows (``vc_coef`` = 1, the paper; another value scales the demo
+rows only). ``loss_qvalue`` / ``loss_actor`` = mean over the rows they use. Every reduction is a masked sum
 divided by a count, so the result does not depend on the order of the rows (and no boolean
 indexing, so it stays compile / CUDA-graph friendly). With ``value_cloning=False`` the V network is
 plain SAC-v1: every row is a training row and ``is_demo`` is not read.
@@ -98,12 +100,13 @@ class _Rows:
     Means over an empty selection are 0. Sums make the result independent of the row order.
     """
 
-    __slots__ = ("demo", "train", "w_train", "w_demo", "w_actor")
+    __slots__ = ("demo", "train", "w_train", "w_demo", "w_actor", "w_all_train", "w_all_demo")
 
     def __init__(self, demo: torch.Tensor | None, like: torch.Tensor, actor_on_demo: bool):
         self.demo = demo
         if demo is None:
             self.train = self.w_train = self.w_demo = self.w_actor = None
+            self.w_all_train = self.w_all_demo = None
             return
         d = demo.to(like.dtype)
         t = 1.0 - d
@@ -111,6 +114,10 @@ class _Rows:
         self.w_train = t / t.sum().clamp_min(1.0)
         self.w_demo = d / d.sum().clamp_min(1.0)
         self.w_actor = None if actor_on_demo else self.w_train
+        # one mean over every row of the batch (the V batch of Value Cloning): each row weighs 1/n
+        n = float(d.numel())
+        self.w_all_train = t / n
+        self.w_all_demo = d / n
 
     def train_mean(self, x: torch.Tensor, guard: bool = False) -> torch.Tensor:
         if self.w_train is None:
@@ -121,6 +128,14 @@ class _Rows:
 
     def demo_mean(self, x: torch.Tensor) -> torch.Tensor:
         return (x * self.w_demo).sum()
+
+    def batch_share_train(self, x: torch.Tensor) -> torch.Tensor:
+        """Sum over the training rows / number of *all* rows (the training rows' part of one batch mean)."""
+        return x.mean() if self.w_all_train is None else (x * self.w_all_train).sum()
+
+    def batch_share_demo(self, x: torch.Tensor) -> torch.Tensor:
+        """Sum over the demo rows / number of *all* rows (the demo rows' part of one batch mean)."""
+        return (x * self.w_all_demo).sum()
 
     def actor_mean(self, x: torch.Tensor) -> torch.Tensor:
         return x.mean() if self.w_actor is None else (x * self.w_actor).sum()
@@ -143,7 +158,8 @@ class DCILSACLoss(LossModule):
         target_entropy: ``"auto"`` = ``-action_dim``, or a float.
         target_clip: ``(low, high)`` clip of the bootstrapped value, or None. Default (0, 5).
         entropy_backup (bool): subtract ``alpha log pi(a'|s')`` in the Q target (no-V mode only).
-        vc_coef (float): weight of ``loss_value_cloning``.
+        vc_coef (float): extra factor on the demo rows of the V batch (``loss_value_cloning``);
+            1 (default) is the paper's single MSE over all rows.
         value_cloning (bool): with a V network, regress V on ``demo_return`` at demo rows.
         actor_on_demo_states (bool): VC mode: also train the actor at the demo states.
 
@@ -435,14 +451,16 @@ class DCILSACLoss(LossModule):
         if self.has_value:
             v = self._v(obs, goal, idx, "live")
             v_target = (q_pi - alpha * logp_pi).detach()
-            out["loss_value"] = rows.train_mean((v - v_target).pow(2))
+            # Value Cloning (paper): ONE mean over the whole mixed V batch, split in two entries whose
+            # sum is that mean; demo rows thus weigh exactly their share of rows (20 %).
+            out["loss_value"] = rows.batch_share_train((v - v_target).pow(2))
             if self.value_cloning:
                 ret = td.get(self.tensor_keys.demo_return, None)
                 if rows.demo is None or ret is None:
                     out["loss_value_cloning"] = v.new_zeros(())
                 else:
                     sq_vc = (v - ret.to(v.dtype).reshape(v.shape)).pow(2)
-                    out["loss_value_cloning"] = self.vc_coef * rows.demo_mean(sq_vc)
+                    out["loss_value_cloning"] = self.vc_coef * rows.batch_share_demo(sq_vc)
         with torch.no_grad():
             out["q_mean"] = rows.train_mean(q.mean(0))
             out["target_mean"] = rows.train_mean(y)

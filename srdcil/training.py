@@ -165,8 +165,12 @@ def evaluate(task: Task, eval_env: TransformedEnv, actor) -> tuple[dict, TensorD
     success = rollout["next", "success"].squeeze(-1)
     goal_idx = rollout["goal_idx"].squeeze(-1)
     reached = int(success.sum())
+    # paper's sense: the final goal was reached (a goal may have been skipped by an AGS switch)
     chain = bool((success & (goal_idx == n_goals - 1)).any())
+    # strict: every goal reached for real, in order (no AGS switch on the way)
+    strict = chain and reached == n_goals
     metrics = {"eval/goals_reached": reached, "eval/chain_success": float(chain),
+               "eval/strict_chain_success": float(strict), "eval/n_goals": n_goals,
                "eval/steps": int(rollout.shape[0])}
     metrics.update({f"eval/{k}": v for k, v in task.eval_metrics(rollout).items()})
     return metrics, rollout
@@ -203,10 +207,10 @@ def _wandb_logged_in() -> bool:
         return False
 
 
-def save_checkpoint(path: Path, *, cfg, frames, actor, loss, updater, env, best, replay=None) -> None:
+def save_checkpoint(path: Path, *, cfg, frames, actor, loss, updater, env, best, replay=None, **extra) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     gst = goal_transform(env)
-    tmp = path.with_suffix(".tmp")
+    tmp = path.with_name(path.name + f".{os.getpid()}.tmp")  # per writer: two runs never share it
     torch.save({
         "frames": frames,
         "actor": actor.state_dict(),
@@ -217,6 +221,7 @@ def save_checkpoint(path: Path, *, cfg, frames, actor, loss, updater, env, best,
         "config": OmegaConf.to_container(cfg, resolve=True),
         "torch_rng": torch.get_rng_state(),
         "replay": None if replay is None else replay.state_dict(),
+        **extra,
     }, tmp)
     tmp.replace(path)  # never leave a half-written checkpoint behind
 
@@ -234,6 +239,45 @@ def load_checkpoint(path, *, actor, loss, updater, env, replay=None) -> dict:
 
 # --------------------------------------------------------------------------------------------
 # the loop
+
+
+def method_name(cfg: DictConfig) -> str:
+    """The method's name in results: ``cfg.method`` when set (``method=`` config group), else the
+    variant (``dcil_ii`` for the demo-state reset scheme)."""
+    if cfg.get("method"):
+        return str(cfg.method)
+    return "dcil_ii" if cfg.get("reset_scheme", "single") == "demo_states" else str(cfg.variant)
+
+
+def resume_path(cfg: DictConfig, run_dir: Path) -> Path | None:
+    """``resume=PATH`` continues from that checkpoint; ``resume=auto`` from ``run_dir/checkpoint.pt``
+    when it exists (so an interrupted sweep continues when the same command is started again)."""
+    r = cfg.get("resume")
+    if not r:
+        return None
+    if str(r) == "auto":
+        p = run_dir / "checkpoint.pt"
+        return p if p.exists() else None
+    return Path(r)
+
+
+def _strict_json(x):
+    """NaN / inf -> None, recursively (result.json is strict JSON)."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _strict_json(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_strict_json(v) for v in x]
+    return x
+
+
+def _truncate_metrics(path: Path, frames: int) -> None:
+    """Drop the evaluations logged after the checkpoint a run resumes from (they are redone)."""
+    lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
+    keep = [ln for ln in lines if json.loads(ln).get("env_steps", 0) <= frames]
+    if len(keep) != len(lines):
+        path.write_text("".join(ln + "\n" for ln in keep))
 
 
 def demo_reset_transforms(task: Task, device) -> list:
@@ -287,11 +331,20 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
     replay = make_replay(task, cfg, variant, device)
 
     start_frames, best = 0, {"eval/goals_reached": -1}
-    if cfg.get("resume"):
-        ckpt = load_checkpoint(cfg.resume, actor=actor, loss=loss, updater=updater, env=env, replay=replay)
+    first_chain = first_strict = None
+    resume = resume_path(cfg, run_dir)
+    if resume is not None:
+        ckpt = load_checkpoint(resume, actor=actor, loss=loss, updater=updater, env=env, replay=replay)
         start_frames, best = int(ckpt["frames"]), ckpt.get("best", best)
+        first_chain, first_strict = ckpt.get("first_chain_success_step"), ckpt.get("first_strict_success_step")
         kept = "with its replay buffer" if ckpt.get("replay") is not None else "(the replay buffer starts empty)"
-        print(f"[srdcil] resumed from {cfg.resume} at {start_frames} env steps {kept}")
+        print(f"[srdcil] resumed from {resume} at {start_frames} env steps {kept}")
+        if ckpt.get("finished") and (ckpt.get("stop_reason") == "after_success"
+                                     or start_frames >= int(cfg.collector.total_frames)):
+            print(f"[srdcil] {resume} is the end of a finished run: nothing to do")
+            return json.loads((run_dir / "result.json").read_text()) if (run_dir / "result.json").exists() else {}
+        if (run_dir / "metrics.jsonl").exists():
+            _truncate_metrics(run_dir / "metrics.jsonl", start_frames)
 
     c = cfg.collector
     total = int(c.total_frames)
@@ -303,7 +356,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
                           init_random_frames=warmup if warmup > 0 else None, device=device,
                           exploration_type=ExplorationType.RANDOM)
 
-    exp_name = cfg.logger.get("exp_name") or f"{task.name}_{cfg.variant}_s{cfg.seed}"
+    exp_name = cfg.logger.get("exp_name") or f"{task.name}_{method_name(cfg)}_s{cfg.seed}"
     logger = make_logger(cfg, run_dir, exp_name)
     OmegaConf.save(cfg, run_dir / "config.yaml")
     metrics_path = run_dir / "metrics.jsonl"
@@ -316,9 +369,13 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
     frames = start_frames
     update_credit = 0.0
     n_updates = 0
-    next_eval = frames  # evaluate at the start, then every eval_interval env steps
+    # evaluate at the start, then every eval_interval env steps (a resumed run keeps the same grid)
+    next_eval = frames if frames == 0 else (frames // eval_interval + 1) * eval_interval
     next_ckpt = frames + ckpt_interval
-    first_chain = None
+    keep_at = sorted(int(x) for x in (cfg.checkpoint.get("keep_at") or []) if int(x) > frames)
+    stop_after = cfg.get("stop_after_success")
+    if stop_after is None and cfg.get("stop_on_chain_success", False):
+        stop_after = 0
     last_eval: dict = {}
     t0 = time.perf_counter()
     t_update = 0.0
@@ -326,11 +383,13 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
     pbar = tqdm(total=total, initial=frames, unit="step", dynamic_ncols=True, disable=not cfg.get("progress", True))
 
     def do_eval():
-        nonlocal first_chain, best, last_eval
+        nonlocal first_chain, first_strict, best, last_eval
         m, rollout = evaluate(task, eval_env, actor)
         last_eval = m
         if m["eval/chain_success"] and first_chain is None:
             first_chain = frames
+        if m["eval/strict_chain_success"] and first_strict is None:
+            first_strict = frames
         m["eval/first_chain_success_step"] = -1 if first_chain is None else first_chain
         if m["eval/goals_reached"] > best["eval/goals_reached"]:
             best = dict(m)
@@ -338,6 +397,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
                 task.plot_rollout(rollout, run_dir / "eval_best.png")
         return m
 
+    stop_reason = "budget"
     for data in collector:
         # Store the collected env steps (the storage computes goal-attempt boundaries).
         replay.extend(data)
@@ -369,9 +429,14 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
             next_eval += eval_interval
             pbar.set_postfix(goals=f"{last_eval['eval/goals_reached']}/{n_goals}",
                              chain=int(last_eval["eval/chain_success"]), refresh=False)
+        extra = {"first_chain_success_step": first_chain, "first_strict_success_step": first_strict}
+        if keep_at and frames >= keep_at[0]:
+            # a snapshot kept for figures (e.g. the value maps at 15k env steps), without the replay
+            save_checkpoint(run_dir / f"checkpoint_{keep_at.pop(0)}.pt", cfg=cfg, frames=frames, actor=actor,
+                            loss=loss, updater=updater, env=env, best=best, **extra)
         if frames >= next_ckpt:
             save_checkpoint(ckpt_path, cfg=cfg, frames=frames, actor=actor, loss=loss, updater=updater, env=env,
-                            best=best, replay=ckpt_replay)
+                            best=best, replay=ckpt_replay, **extra)
             next_ckpt += ckpt_interval
         log["time/env_steps_per_s"] = (frames - start_frames) / (time.perf_counter() - t0)
         log["time/updates"] = n_updates
@@ -380,20 +445,28 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
         if any(k.startswith("eval/") for k in log):
             with open(metrics_path, "a") as f:
                 f.write(json.dumps({"env_steps": frames, **log}) + "\n")
-        if cfg.get("stop_on_chain_success", False) and first_chain is not None:
+        if stop_after is not None and first_chain is not None and frames >= first_chain + int(stop_after):
+            stop_reason = "after_success"
             break
     t_end = time.perf_counter()
     collector.shutdown()
     pbar.close()
     final = do_eval()
     save_checkpoint(ckpt_path, cfg=cfg, frames=frames, actor=actor, loss=loss, updater=updater, env=env, best=best,
-                    replay=ckpt_replay)
+                    replay=ckpt_replay, first_chain_success_step=first_chain, first_strict_success_step=first_strict,
+                    finished=True, stop_reason=stop_reason)
     wall = time.perf_counter() - t0
     result = {
         **final,
         "env_steps": frames,
         "updates": n_updates,
+        "method": method_name(cfg),
+        "seed": int(cfg.seed),
+        "n_goals": n_goals,
+        "budget_env_steps": total,
+        "stop_reason": stop_reason,
         "first_chain_success_step": first_chain,
+        "first_strict_success_step": first_strict,
         "best_goals_reached": best["eval/goals_reached"],
         "wall_s": wall,
         "env_steps_per_s": (frames - start_frames) / wall,
@@ -402,8 +475,9 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
         "env_steps_per_s_after_warmup": ((frames - f_warm) / (t_end - t_warm)) if t_warm else math.nan,
         "ags_thresholds": goal_transform(env).ags_thresholds.tolist(),
     }
+    result = _strict_json(result)
     with open(run_dir / "result.json", "w") as f:
-        json.dump(result, f, indent=1)
+        json.dump(result, f, indent=1, allow_nan=False)  # strict JSON: NaN written as null
     if logger is not None and hasattr(logger, "experiment") and cfg.logger.backend == "wandb":
         logger.experiment.finish()
     return result

@@ -337,19 +337,35 @@ def test_ags_threshold_window_follows_recent_successes_and_unsets_idle_goals():
     assert torch.isnan(t.ags_thresholds).all()
 
 
-def test_ags_armed_at_last_goal_truncates_and_shared_thresholds():
+def test_ags_never_arms_at_last_goal_and_shared_thresholds():
+    """At the last goal there is nothing to switch to: AGS must not arm nor cut the budget, even
+    when Q̄ >= θ at every step (the old code cut the last attempt to k steps, in evaluation too)."""
     goals = torch.tensor([[1.0], [2.0]])
     shared = torch.tensor([float("nan"), 0.5])
-    critic = ScriptedCritic([0.0, 1.0, 1.0, 1.0])
+    critic = ScriptedCritic([0.0] + [1.0] * 12)
     env = make_env(goals=goals, t_max=10, ags=True, ags_k=2, critic=critic, thresholds=shared,
                    learn_thresholds=False)
     assert env.transform.ags_thresholds is shared
-    data, _ = run(env, acts(1.0, 0.0, 0.0, 0.0))
-    assert flat(data["next", "goal_idx"]) == [1, 1, 1, 1]
-    assert flat(data["next", "ags_armed"]) == [False, True, True, True]
-    assert flat(data["next", "goal_budget"]) == [10, 2, 1, 0]
-    assert flat(data["next", "truncated"]) == [False, False, False, True]
+    data, _ = run(env, acts(1.0, *([0.0] * 10)))
+    assert flat(data["next", "goal_idx"]) == [1] * 11
+    assert not data["next", "ags_armed"].any()
+    # the whole per-goal budget of the last goal is spent before the attempt ends
+    assert flat(data["next", "goal_budget"]) == [10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0]
+    assert flat(data["next", "truncated"]) == [False] * 10 + [True]
     assert torch.isnan(shared[0])  # learn_thresholds=False: success did not touch θ
+
+
+def test_ags_still_arms_before_the_last_goal():
+    # the same critic and θ one goal earlier: AGS arms and switches k steps later
+    goals = torch.tensor([[1.0], [2.0], [3.0]])
+    shared = torch.tensor([float("nan"), 0.5, 0.5])
+    critic = ScriptedCritic([0.0] + [1.0] * 5)
+    env = make_env(goals=goals, t_max=10, ags=True, ags_k=2, critic=critic, thresholds=shared,
+                   learn_thresholds=False)
+    data, _ = run(env, acts(1.0, 0.0, 0.0, 0.0, 0.0))
+    assert flat(data["next", "goal_idx"]) == [1, 1, 1, 2, 2]
+    assert flat(data["next", "ags_armed"]) == [False, True, True, False, False]
+    assert flat(data["next", "goal_budget"]) == [10, 2, 1, 10, 9]
 
 
 def test_ags_requires_critic_and_set_critic():

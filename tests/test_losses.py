@@ -207,7 +207,8 @@ def test_value_cloning_uses_demo_rows_only():
     out = loss(td)
     v = loss._v_core(td["observation"], td["goal"], td["goal_idx"])
     demo = td["is_demo"]
-    expected = 2.0 * ((v - td["demo_return"])[demo] ** 2).mean()
+    # one batch mean: the demo rows' squared errors summed, divided by ALL rows (16), times vc_coef
+    expected = 2.0 * ((v - td["demo_return"])[demo] ** 2).sum() / td.shape[0]
     torch.testing.assert_close(out["loss_value_cloning"], expected)
     # the demo rows' (filler) actions / next states do not enter the Q loss
     td2 = td.clone()
@@ -327,3 +328,33 @@ def test_normalisation_and_dtype_move_reach_the_loss():
     loss._sample_noise = torch.zeros_like
     y64 = loss.compute_target(td64)
     assert y64.dtype == torch.float64 and y64.shape == y32.shape
+
+
+def test_value_loss_is_one_mean_over_the_mixed_batch_by_hand():
+    """The paper's VC loss: ONE MSE over the whole V batch; demo states weigh their share of rows.
+
+    5 rows, 1 demo row: V = c * goal_x + v[idx] by hand; training-row target = min_j Q_j(s, a~) -
+    alpha log pi(a~|s) with Q independent of (s, a) here, so the target is known in closed form.
+    """
+    v_lin = _linear_v([0.5, -1.0, 2.0], 0.3)
+    q_lin = _linear_q([1.0, 2.0, 3.0], [1.5, 1.0, 4.0], 0.0, 0.0)
+    actor = make_actor(OBS, GOAL, N, ACT, hidden=(8,))
+    loss = DCILSACLoss(actor, q_lin, v_lin, alpha=1e-3)
+    loss._sample_noise = _row_noise
+    td = _random_batch(B=5, seed=4)
+    td["is_demo"] = torch.tensor([[False], [False], [True], [False], [False]])
+    td["demo_return"] = torch.tensor([[0.0], [0.0], [1.7], [0.0], [0.0]])
+    out = loss(td)
+    gx, idx = td["goal"][:, 0], td["goal_idx"][:, 0]
+    v = 0.3 * gx + torch.tensor([0.5, -1.0, 2.0])[idx]
+    qmin = torch.minimum(torch.tensor([1.0, 2.0, 3.0])[idx], torch.tensor([1.5, 1.0, 4.0])[idx])
+    _, logp = loss._actor_sample(td["observation"], td["goal"], td["goal_idx"])
+    target = qmin - 1e-3 * logp[:, 0]
+    train = torch.tensor([0, 1, 3, 4])
+    sq_train = (v[train] - target[train]) ** 2
+    sq_demo = (v[2] - 1.7) ** 2
+    torch.testing.assert_close(out["loss_value"], sq_train.sum() / 5)
+    torch.testing.assert_close(out["loss_value_cloning"], sq_demo / 5)
+    # the sum is the plain MSE over all 5 rows, each row with its own target
+    all_sq = torch.cat([sq_train, sq_demo.reshape(1)])
+    torch.testing.assert_close(out["loss_value"] + out["loss_value_cloning"], all_sq.mean())

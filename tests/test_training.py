@@ -159,3 +159,39 @@ def test_fetch_recipe_smoke(tmp_path):
     r = train(cfg, run_dir=tmp_path)
     assert r["env_steps"] == 40 and r["updates"] > 0
     assert len(r["ags_thresholds"]) == 12  # goals of the whole shipped demo (ε 0.5, 10-25 steps each)
+
+
+def test_stop_after_success_then_auto_resume_skips_the_finished_run(tmp_path, wiggle_demo):
+    """A run continues ``stop_after_success`` env steps after its first full-chain success, then
+    stops; starting it again with ``resume=auto`` finds its final checkpoint and does nothing."""
+    over = reduced(wiggle_demo) + ["variant=db", "collector.total_frames=8000", "stop_on_chain_success=false",
+                                   "stop_after_success=500", "resume=auto"]
+    r = train(config("sr_dcil_dubins", over), run_dir=tmp_path)
+    first = r["first_chain_success_step"]
+    assert first is not None, f"db: best {r['best_goals_reached']} goals"
+    assert r["stop_reason"] == "after_success"
+    assert first + 500 <= r["env_steps"] < first + 500 + 12  # one collection round of 12 env steps
+    lines = [json.loads(x) for x in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert lines[-1]["env_steps"] >= first + 500 - 250  # evaluations went on after the success
+    assert {"eval/strict_chain_success", "eval/n_goals"} <= set(lines[-1])
+    before = (tmp_path / "metrics.jsonl").read_text()
+    r2 = train(config("sr_dcil_dubins", over), run_dir=tmp_path)
+    assert r2["env_steps"] == r["env_steps"] and r2["first_chain_success_step"] == first
+    assert (tmp_path / "metrics.jsonl").read_text() == before  # nothing was re-run
+    json.loads((tmp_path / "result.json").read_text(), parse_constant=lambda c: pytest.fail(f"bare {c}"))
+
+
+def test_method_group_and_ablation_experiment_configs():
+    from srdcil.training import method_name
+
+    cfg = config("sr_dcil_dubins", ["method=dcil_ii"])
+    assert (cfg.variant, cfg.reset_scheme, cfg.replay.relabel_fraction) == ("vanilla", "demo_states", 0.8)
+    assert method_name(cfg) == "dcil_ii"
+    cfg = config("sr_dcil_dubins", ["method=db_ags_paper"])
+    assert cfg.variant == "db_ags" and cfg.ags.threshold_window is None and method_name(cfg) == "db_ags_paper"
+    cfg = config("sr_dcil_dubins", ["variant=vc"])  # no method group: the variant names the run
+    assert method_name(cfg) == "vc" and cfg.ags.threshold_window == 2000
+    assert method_name(config("dcil_ii_dubins", [])) == "dcil_ii"
+    cfg = config("sr_dcil_dubins", ["experiment=dubins_ablation", "method=vc_ags"])
+    assert cfg.collector.total_frames == 100_000 and cfg.stop_after_success == 20_000
+    assert cfg.resume == "auto" and list(cfg.checkpoint.keep_at) == [15000]

@@ -17,8 +17,8 @@ Semantics of one step, for an env on goal i with budget b (steps left) at time t
 * ``success`` = ‖ag(s_{t+1}) − g_i‖ ≤ radius (:func:`srdcil.rule.goal_success`),
   ``reward`` = success as float32 (the base env's reward is overwritten).
 * b ← b − 1.
-* AGS (``ags=True``, θ_i set, no success): if Q̄(s_t, g_i, i, a_t) ≥ θ_i then b ← min(b, k) and
-  the env is armed. Re-arming never extends the budget. The cut is applied after this step's
+* AGS (``ags=True``, θ_i set, no success, i < N−1): if Q̄(s_t, g_i, i, a_t) ≥ θ_i then
+  b ← min(b, k) and the env is armed. AGS never arms at the last goal (nothing to switch to). Re-arming never extends the budget. The cut is applied after this step's
   decrement, so the switch comes exactly k steps after the first activation (mirroring the
   threshold, which is the Q value k steps before a real success).
 * success and i < N−1 → switch to i+1; success at i = N−1 → ``terminated``.
@@ -286,8 +286,9 @@ class GoalSequenceTransform(Transform):
             if self._learn or not bool(torch.isnan(theta).all()):
                 q = self._critic_values(tensordict)
                 theta_i = theta.index_select(0, idx.reshape(-1)).reshape(q.shape)
-                # a NaN (unset) θ_i compares False: AGS is inactive for goals never reached
-                activate = (q >= theta_i) & not_success
+                # a NaN (unset) θ_i compares False: AGS is inactive for goals never reached;
+                # never at the last goal: there is no goal to switch to, so no budget cut either
+                activate = (q >= theta_i) & not_success & ~last
                 armed = armed | activate
                 # cut to k *after* this step's decrement; min() so re-arming never extends it
                 budget = torch.where(activate, budget.clamp_max(self.ags_k), budget)
