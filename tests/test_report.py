@@ -1,0 +1,199 @@
+"""srdcil.report on synthetic run directories (no training, no torch needed)."""
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+import yaml
+
+from srdcil import report
+
+N = 5  # goals in the synthetic task
+
+
+def _write_run(d, evals, cfg, result=None, new_format=True, extra_lines=()):
+    """evals: (env_steps, goals_reached, chain_success[, strict]) tuples."""
+    d.mkdir(parents=True)
+    (d / "config.yaml").write_text(yaml.safe_dump(cfg))
+    lines = []
+    for e in evals:
+        steps, goals, chain = e[:3]
+        rec = {"env_steps": steps, "train/success_rate": 0.1, "eval/goals_reached": goals,
+               "eval/chain_success": float(chain)}
+        if new_format:
+            rec["eval/strict_chain_success"] = float(e[3])
+            rec["eval/n_goals"] = N
+        lines.append(json.dumps(rec))
+    lines += list(extra_lines)
+    (d / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+    if result is not None:
+        (d / "result.json").write_text(json.dumps(result))
+
+
+S2_GOALS = [1, 2, 3, 2, 1, 2, 3, 3, 2, 1, 2]  # db_ags seed 2 at 0, 5k, ..., 50k: never solved
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory):
+    root = tmp_path_factory.mktemp("results")
+    cfg = lambda seed, frames=50_000, **kw: {"seed": seed, "collector": {"total_frames": frames}, **kw}  # noqa
+    # db_ags (new format): chain success at 10k (4/5 goals: final goal reached, one skipped), strict at 15k
+    _write_run(root / "db_ags_s0", [(0, 0, 0, 0), (5000, 2, 0, 0), (10000, 4, 1, 0), (15000, 5, 1, 1)],
+               cfg(0, method="db_ags"), {"n_goals": N, "first_chain_success_step": 10000, "best_goals_reached": 5,
+                                         "env_steps": 15000, "stop_reason": "chain_success"})
+    # solved at 20k, but its result.json claims 15k -> warning, metrics.jsonl wins
+    _write_run(root / "db_ags_s1", [(0, 1, 0, 0), (5000, 3, 0, 0), (10000, 3, 0, 0), (15000, 4, 0, 0),
+                                    (20000, 5, 1, 1)],
+               cfg(1), {"first_chain_success_step": 15000, "best_goals_reached": 5, "env_steps": 20000})
+    _write_run(root / "db_ags_s2", [(5000 * i, g, 0, 0) for i, g in enumerate(S2_GOALS)], cfg(2),
+               {"first_chain_success_step": None, "best_goals_reached": 3, "env_steps": 50000})
+    # vanilla: old format (no strict / n_goals keys), one solved of three
+    _write_run(root / "vanilla_s0", [(0, 1, 0), (5000, 2, 0), (10000, 3, 1), (15000, 5, 1)], cfg(0, variant="x"),
+               {"first_chain_success_step": 10000, "best_goals_reached": 5, "env_steps": 15000},
+               new_format=False)
+    _write_run(root / "vanilla_s1", [(0, 1, 0), (5000, 2, 0), (10000, 1, 0)], cfg(1, frames=10_000),
+               {"first_chain_success_step": None, "best_goals_reached": 2, "env_steps": 10000}, new_format=False)
+    # incomplete (no result.json), nested one level deeper, with a non-eval line and a half-written last line
+    _write_run(root / "more" / "vanilla_s2", [(0, 0, 0), (5000, 1, 0), (10000, 2, 0)], cfg(2), None,
+               new_format=False, extra_lines=[json.dumps({"env_steps": 12000, "train/success_rate": 0.0}),
+                                               '{"env_steps": 13000, "eval/go'])
+    # config has variant=vanilla (as the real dcil_ii runs do): the method comes from the directory name
+    _write_run(root / "dcil_ii_s0", [(0, 1, 0, 0), (5000, 5, 1, 1)], cfg(0, variant="vanilla"),
+               {"first_chain_success_step": 5000, "best_goals_reached": 5, "env_steps": 5000})
+    _write_run(root / "db_ags_s0" / ".hydra", [(0, 5, 1, 1)], cfg(9))  # must be skipped
+    return root
+
+
+@pytest.fixture(scope="module")
+def written(results, tmp_path_factory):
+    out = tmp_path_factory.mktemp("report")
+    import contextlib
+    import io
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        summary = report.write_report(results, out=out, budgets=(10_000, 25_000, 50_000), n_goals=N,
+                                      grid_step=1000, reps=100)
+    return out, summary, buf.getvalue()
+
+
+def test_runs_csv(results, written):
+    out, _, _ = written
+    with open(out / "runs.csv") as f:
+        rows = list(csv.DictReader(f))
+    for c in ("method", "seed", "status", "budget_env_steps", "last_env_steps", "first_chain_success_step",
+              "first_strict_success_step", "best_goals_reached", "n_goals", "run_dir"):
+        assert c in rows[0]
+    got = [(r["method"], r["seed"], r["status"], r["budget_env_steps"], r["last_env_steps"],
+            r["first_chain_success_step"], r["first_strict_success_step"], r["best_goals_reached"], r["n_goals"])
+           for r in rows]
+    assert got == [  # preferred method order (vanilla, db_ags, ..., dcil_ii), then seed
+        ("vanilla", "0", "finished", "50000", "15000", "10000", "15000", "5", "5"),
+        ("vanilla", "1", "finished", "10000", "10000", "", "", "2", "5"),
+        ("vanilla", "2", "incomplete", "50000", "12000", "", "", "2", "5"),
+        ("db_ags", "0", "finished", "50000", "15000", "10000", "15000", "5", "5"),
+        ("db_ags", "1", "finished", "50000", "20000", "20000", "20000", "5", "5"),
+        ("db_ags", "2", "finished", "50000", "50000", "", "", "3", "5"),
+        ("dcil_ii", "0", "finished", "50000", "5000", "5000", "5000", "5", "5"),
+    ]
+    rel = [r["run_dir"] for r in rows]
+    assert rel[2] == str(__import__("pathlib").Path("..") / results.name / "more" / "vanilla_s2")
+    assert all((out / p / "metrics.jsonl").exists() for p in rel)
+
+
+def test_warning_on_result_json_disagreement(written):
+    _, _, stdout = written
+    warn = [ln for ln in stdout.splitlines() if "warning" in ln.lower()]
+    assert len(warn) == 1 and "db_ags_s1" in warn[0] and "first_chain_success_step" in warn[0]
+
+
+def test_n_goals_fallbacks(results):
+    assert report.read_run(results / "vanilla_s0", default_n_goals=17)["n_goals"] == 17  # old format: CLI default
+    r = report.read_run(results / "vanilla_s0", default_n_goals=17)
+    assert r["first_strict_success_step"] is None  # 5 goals reached but 17 needed for strict success
+    assert report.read_run(results / "db_ags_s0", default_n_goals=17)["n_goals"] == N  # from eval/n_goals
+
+
+def test_locf():
+    got = report.locf_on_grid([1000, 3000], [1.0, 2.0], [0, 999, 1000, 2000, 3000, 9000])
+    np.testing.assert_array_equal(got, [np.nan, np.nan, 1.0, 1.0, 2.0, 2.0])
+    # a run enters the mean only once it has an evaluation: at t=1500 only run a counts
+    a = {"evals": [(1000, 1, 0.0, 0.0, 0.2), (2000, 5, 1.0, 1.0, 1.0)]}
+    b = {"evals": [(2000, 2, 0.0, 0.0, 0.4), (3000, 3, 0.0, 0.0, 0.6)]}
+    mean, half, n = report.mean_band([a, b], [1500, 2500, 5000], "goals_norm")
+    np.testing.assert_allclose(mean, [0.2, 0.7, 0.8])
+    np.testing.assert_allclose(half, [0.0, 0.15, 0.1])
+    np.testing.assert_array_equal(n, [1, 2, 2])
+
+
+def test_locf_on_real_runs(results):
+    runs = [r for r in report.collect(results, N, verbose=False) if r["method"] == "db_ags"]
+    mean, _, n = report.mean_band(runs, [12000, 30000], "goals_norm")
+    # 12k: 4/5 (s0 at 10k), 3/5 (s1 at 10k), 3/5 (s2 at 10k); 30k: s0, s1 carried forward at 5/5, s2 3/5
+    np.testing.assert_allclose(mean, [(0.8 + 0.6 + 0.6) / 3, (1 + 1 + 0.6) / 3])
+    np.testing.assert_array_equal(n, [3, 3])
+    np.testing.assert_allclose(report.solved_fraction(runs, [9999, 10000, 20000]), [0, 1 / 3, 2 / 3])
+    assert report.score_at(runs[2], 25000) == S2_GOALS[5] / N
+
+
+def test_censored_median():
+    inf = math.inf
+    assert report.censored_quantile([10_000, 20_000, inf], 0.5) == 20_000
+    assert report.censored_quantile([10_000, inf, inf], 0.5) is None
+    assert report.censored_quantile([10_000, 20_000, inf], 0.25) == 15_000
+    assert report.censored_quantile([10_000, 20_000, inf], 0.75) is None
+    assert report.censored_quantile([30_000, 40_000], 0.5) == 35_000
+    assert report.censored_quantile([30_000, inf], 0.5) is None  # exactly half solved: not determined
+
+
+def test_summary(written):
+    out, summary, stdout = written
+    for f in ("runs.csv", "ablation.png", "summary.md", "summary.json"):
+        assert (out / f).stat().st_size > 0
+    text = (out / "summary.json").read_text()
+
+    def no_nan(c):
+        raise ValueError(c)
+
+    doc = json.loads(text, parse_constant=no_nan)  # strict JSON: no NaN / Infinity
+    assert doc["budget"] == 50_000
+    m = doc["methods"]
+    assert list(m) == ["vanilla", "db_ags", "dcil_ii"]
+    assert (m["db_ags"]["n"], m["db_ags"]["solved"], m["db_ags"]["solved_strict"]) == (3, 2, 2)
+    assert m["db_ags"]["median_steps_to_solve"] == 20_000
+    assert (m["vanilla"]["n"], m["vanilla"]["solved"], m["vanilla"]["n_incomplete"]) == (3, 1, 1)
+    assert m["vanilla"]["median_steps_to_solve"] is None
+    md = (out / "summary.md").read_text()
+    assert "LOCF" in md and "not reached" in md and "| db_ags | 3 | 2/3 | 2/3 | 20k |" in md
+    assert "| db_ags | 3 | 2/3 | 2/3 | 20k |" in stdout
+
+
+def test_rliable_outputs(written):
+    if report.rliable_error() is not None:
+        pytest.skip(f"rliable not importable: {report.rliable_error()}")
+    out, summary, _ = written
+    assert (out / "iqm.png").stat().st_size > 0 and (out / "profiles.png").stat().st_size > 0
+    e = summary["methods"]["db_ags"]["iqm"]["25000"]
+    # scores at 25k (LOCF): 1.0, 1.0, 2/5 -> IQM of 3 runs = their mean
+    assert e["n"] == 3 and e["iqm"] == pytest.approx((1 + 1 + S2_GOALS[5] / N) / 3)
+    assert 0.4 - 1e-9 <= e["ci_low"] <= e["iqm"] <= e["ci_high"] <= 1 + 1e-9 and e["ci_low"] < e["ci_high"]
+    e10 = summary["methods"]["vanilla"]["iqm"]["10000"]  # 3/5, 1/5, 2/5
+    assert e10["iqm"] == pytest.approx(0.4)
+    # seeded bootstrap: the same numbers again
+    scores = {"db_ags": {25000: [1.0, 1.0, 0.4]}}
+    a, _ = report.rliable_estimates(scores, [25000], reps=100, seed=3, taus=[0, 0.5, 1])
+    b, _ = report.rliable_estimates(scores, [25000], reps=100, seed=3, taus=[0, 0.5, 1])
+    assert a == b
+
+
+def test_without_rliable(results, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(report, "rliable_error", lambda: "ModuleNotFoundError: No module named 'rliable'")
+    report.main([str(results), "--out", str(tmp_path), "--n-goals", "5", "--budgets", "10k,20k",
+                 "--methods", "db_ags", "dcil_ii"])
+    printed = capsys.readouterr().out
+    assert "rliable not importable" in printed
+    assert not (tmp_path / "iqm.png").exists() and (tmp_path / "ablation.png").exists()
+    doc = json.loads((tmp_path / "summary.json").read_text())
+    assert list(doc["methods"]) == ["db_ags", "dcil_ii"] and doc["budgets"] == [10_000, 20_000]
+    assert doc["methods"]["db_ags"]["iqm"]["10000"]["iqm"] is None
