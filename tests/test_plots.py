@@ -1,0 +1,223 @@
+"""Tests of srdcil.plots: the figures' numbers against hand calls of the networks, and the CLI.
+
+The checkpoints are untrained agents (small networks) whose weights are perturbed at random, live
+and target critics differently, so that the values vary over the maze and a figure that read the
+wrong network (live instead of target Q, stochastic instead of deterministic action, wrong goal
+index) would give different numbers. They are written with ``srdcil.training.save_checkpoint``
+itself, so the test follows the real checkpoint format.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from srdcil import plots
+from srdcil.goals import demo_transitions, demo_value_states
+from srdcil.tasks import make_task
+from srdcil.training import get_variant, goal_transform, make_agent, make_env, make_loss_and_updater, save_checkpoint
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG_DIR = ROOT / "recipes" / "config"
+GOAL = 2
+
+
+def _config(name: str, overrides: list[str]):
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        return compose(config_name=name, overrides=overrides)
+
+
+def _perturb(params, gen: torch.Generator, scale: float) -> None:
+    with torch.no_grad():
+        for key, p in params.items():
+            if key.endswith("weight") or key.endswith("bias"):
+                p.add_(scale * torch.randn(p.shape, generator=gen))
+
+
+def _make_checkpoint(path: Path, config: str, variant: str, seed: int, extra=()) -> Path:
+    cfg = _config(config, [f"variant={variant}", "network.hidden=[32,32]", *extra])
+    task = make_task(cfg.env)
+    v = get_variant(variant)
+    actor, qvalue, value = make_agent(task, cfg, v, "cpu")
+    loss, updater = make_loss_and_updater(cfg, actor, qvalue, value)
+    gen = torch.Generator().manual_seed(seed)
+    # live nets and target nets perturbed independently: target Q != live Q
+    _perturb(loss.state_dict(), gen, 0.3)
+    _perturb(actor.state_dict(), gen, 0.3)
+    env = make_env(task, 1, "cpu", ags=v.ags, ags_k=int(cfg.ags.k),
+                   critic=loss.target_q_value if v.ags else None)
+    thr = goal_transform(env).ags_thresholds
+    thr.copy_(torch.linspace(0.0, 1.0, thr.numel()))
+    thr[-1] = float("nan")
+    save_checkpoint(path, cfg=cfg, frames=1234, actor=actor, loss=loss, updater=updater, env=env,
+                    best={"eval/goals_reached": 0})
+    return path
+
+
+@pytest.fixture(scope="module")
+def ckpts(tmp_path_factory):
+    d = tmp_path_factory.mktemp("plots")
+    return {
+        "db_ags": _make_checkpoint(d / "db_ags" / "checkpoint.pt", "sr_dcil_dubins", "db_ags", 0),
+        "vc": _make_checkpoint(d / "vc" / "checkpoint.pt", "sr_dcil_dubins", "vc", 1),
+    }
+
+
+@pytest.fixture(scope="module")
+def agents(ckpts):
+    return {k: plots.load_agent(p) for k, p in ckpts.items()}
+
+
+def _det_action(agent, obs, goal, idx):
+    loc, _ = agent.actor.module[0].module(obs, goal, idx)  # GaussianPolicyNet core
+    return torch.tanh(loc)
+
+
+def _target_q(agent, obs, goal, idx, act):
+    from tensordict import TensorDict
+
+    td = TensorDict({"observation": obs, "goal": goal, "goal_idx": idx, "action": act}, batch_size=[obs.shape[0]])
+    return agent.loss.target_q_value(td).reshape(-1)
+
+
+def test_load_agent_restores_the_checkpoint(ckpts, agents):
+    a = agents["db_ags"]
+    ckpt = torch.load(ckpts["db_ags"], map_location="cpu", weights_only=False)
+    assert a.frames == 1234 and a.label == "db_ags" and a.n_goals == len(a.task.goals)
+    torch.testing.assert_close(a.thresholds, ckpt["ags_thresholds"], equal_nan=True)
+    for k, v in a.loss.state_dict().items():
+        torch.testing.assert_close(v, ckpt["loss"][k], msg=k)
+    for k, v in a.actor.state_dict().items():
+        torch.testing.assert_close(v, ckpt["actor"][k], msg=k)
+    assert not a.has_value and agents["vc"].has_value
+
+
+@torch.no_grad()
+def test_value_grid_is_target_q_of_the_deterministic_action_maximised_over_headings(agents):
+    a = agents["db_ags"]
+    grid = plots.value_grid(a, GOAL, n=9, n_headings=5, theta_range=(-1.0, 4.0))
+    np.testing.assert_allclose(grid.thetas, [-1.0, 0.0, 1.0, 2.0, 3.0], atol=1e-12)
+    g = a.task.goals.goals[GOAL]
+    for iy, ix in [(0, 0), (4, 7), (8, 2)]:
+        x, y = grid.xs[ix], grid.ys[iy]
+        obs = torch.tensor([[x, y, th] for th in grid.thetas], dtype=torch.float32)
+        goal = g.expand(len(grid.thetas), -1)
+        idx = torch.full((len(grid.thetas), 1), GOAL, dtype=torch.long)
+        q = _target_q(a, obs, goal, idx, _det_action(a, obs, goal, idx))
+        np.testing.assert_allclose(grid.per_heading[iy, ix], q.numpy(), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(grid.values[iy, ix], q.max().item(), rtol=1e-5, atol=1e-6)
+        # it is the target critic: the live critic gives other numbers here
+        q_live = a.loss._q_all(obs, goal, idx, _det_action(a, obs, goal, idx), "live").amin(0).reshape(-1)
+        assert not torch.allclose(q_live, q, atol=1e-4)
+    assert grid.values.std() > 1e-3  # the perturbed critic is not flat over the maze
+    # another goal index gives another map (the index and the goal are really fed in)
+    other = plots.value_grid(a, GOAL + 1, n=9, n_headings=5, theta_range=(-1.0, 4.0))
+    assert not np.allclose(other.values, grid.values)
+
+
+@torch.no_grad()
+def test_value_grid_with_v_reads_the_value_network(agents):
+    a = agents["vc"]
+    grid = plots.value_grid(a, GOAL, n=6, n_headings=4, use_v=True)
+    lo, hi = plots.default_theta_range(a)
+    assert math.isclose(hi - lo, 2 * math.pi, rel_tol=1e-9) and lo == pytest.approx(float(a.task.demo.states[:, 2].min()))
+    iy, ix = 3, 1
+    obs = torch.tensor([[grid.xs[ix], grid.ys[iy], th] for th in grid.thetas], dtype=torch.float32)
+    goal = a.task.goals.goals[GOAL].expand(len(grid.thetas), -1)
+    idx = torch.full((len(grid.thetas), 1), GOAL, dtype=torch.long)
+    v_net = a.loss.value_network.module  # GoalConditionedMLP with the live V weights
+    v = v_net(obs, goal, idx).reshape(-1)
+    np.testing.assert_allclose(grid.values[iy, ix], v.max().item(), rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="no V network"):
+        plots.value_grid(agents["db_ags"], GOAL, n=4, n_headings=2, use_v=True)
+
+
+def test_ags_region_is_value_above_threshold(agents):
+    a = agents["db_ags"]
+    grid0 = plots.value_grid(a, GOAL, n=20, n_headings=6)
+    theta = float(np.median(grid0.values))  # a threshold that splits the grid
+    a.thresholds[GOAL] = theta
+    try:
+        grid, th, mask = plots.ags_region(a, GOAL, n=20, n_headings=6)
+    finally:
+        a.thresholds[GOAL] = torch.load(a.path, map_location="cpu", weights_only=False)["ags_thresholds"][GOAL]
+    assert th == theta
+    np.testing.assert_array_equal(mask, grid.values >= theta)
+    assert 0 < mask.sum() < mask.size
+    # unset threshold (NaN, the last goal here): empty region
+    last = a.n_goals - 1
+    _, th_nan, mask_nan = plots.ags_region(a, last, n=8, n_headings=3)
+    assert math.isnan(th_nan) and not mask_nan.any()
+
+
+@pytest.mark.parametrize("name", ["vc", "db_ags"])
+@torch.no_grad()
+def test_vc_series_matches_demo_returns_and_hand_calls(agents, name):
+    a = agents[name]
+    s = plots.vc_series(a)
+    rows = demo_value_states(a.task.demo, a.task.goals, a.gamma)
+    np.testing.assert_allclose(s["v_demo"], rows["demo_return"].reshape(-1).numpy())
+    np.testing.assert_array_equal(s["goal_idx"], rows["goal_idx"].reshape(-1).numpy())
+    obs, goal, idx = rows["observation"], rows["goal"], rows["goal_idx"]
+    np.testing.assert_allclose(s["q_pi"], _target_q(a, obs, goal, idx, _det_action(a, obs, goal, idx)).numpy(),
+                               rtol=1e-5, atol=1e-6)
+    tr = demo_transitions(a.task.demo, a.task.goals, a.gamma)
+    np.testing.assert_allclose(s["q_demo"], _target_q(a, tr["observation"], tr["goal"], tr["goal_idx"],
+                                                      tr["action"]).numpy(), rtol=1e-5, atol=1e-6)
+    if a.has_value:
+        v = a.loss.value_network.module(obs, goal, idx).reshape(-1)
+        np.testing.assert_allclose(s["v"], v.numpy(), rtol=1e-5, atol=1e-6)
+    else:
+        assert s["v"] is None
+    # goal switches: one per goal after the first, where the demo's goal index steps up
+    g = s["goal_idx"]
+    assert len(s["switches"]) == a.n_goals - 1
+    assert all(g[t] == g[t - 1] + 1 for t in s["switches"])
+
+
+def _is_png(path: Path) -> bool:
+    return path.exists() and path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_writes_every_figure(ckpts, tmp_path):
+    db, vc = str(ckpts["db_ags"]), str(ckpts["vc"])
+    small = ["--grid", "16", "--headings", "4"]
+    out = plots.main(["value-maps", db, vc, "--goal-index", "3", *small, "--use-v", "--out",
+                      str(tmp_path / "vm.png")])
+    assert _is_png(out)
+    out = plots.main(["value-maps", db, "--goal-index", "stall", "--rollout", *small, "--out",
+                      str(tmp_path / "vm_stall.png")])
+    assert _is_png(out)
+    assert _is_png(plots.main(["ags-contour", db, "--goal-index", "3", *small, "--out", str(tmp_path / "ags.png")]))
+    last = str(len(plots.load_agent(db).task.goals) - 1)  # NaN threshold
+    assert _is_png(plots.main(["ags-contour", db, "--goal-index", last, *small, "--out",
+                               str(tmp_path / "ags_nan.png")]))
+    assert _is_png(plots.main(["vc-diagnostic", vc, "--out", str(tmp_path / "vc.png")]))
+    assert _is_png(plots.main(["vc-diagnostic", db, "--live", "--out", str(tmp_path / "db.png")]))
+    with pytest.raises(ValueError, match="out of range"):
+        plots.main(["ags-contour", db, "--goal-index", "99", *small, "--out", str(tmp_path / "x.png")])
+
+
+def test_eval_rollout_starts_at_the_start_state(agents):
+    a = agents["db_ags"]
+    xy, reached, last = plots.eval_rollout(a)
+    np.testing.assert_allclose(xy[0], a.task.demo.achieved_goals[0].numpy())
+    assert 0 <= last < a.n_goals and 0 <= reached <= a.n_goals
+    assert xy.shape[0] >= 2
+
+
+def test_vc_diagnostic_works_on_a_fetch_checkpoint(tmp_path):
+    pytest.importorskip("mujoco")
+    path = _make_checkpoint(tmp_path / "fetch" / "checkpoint.pt", "sr_dcil_fetch", "vc", 2)
+    a = plots.load_agent(path)
+    s = plots.vc_series(a)
+    rows = demo_value_states(a.task.demo, a.task.goals, a.gamma)
+    np.testing.assert_allclose(s["v_demo"], rows["demo_return"].reshape(-1).numpy())
+    assert s["v"] is not None and s["v"].shape == s["v_demo"].shape
+    assert _is_png(plots.plot_vc_diagnostic(a, tmp_path / "fetch_vc.png"))
+    with pytest.raises(ValueError, match="Dubins"):
+        plots.value_grid(a, 0, n=4, n_headings=2)
