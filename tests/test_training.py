@@ -25,8 +25,8 @@ CONFIG_DIR = ROOT / "recipes" / "config"
 WIGGLE_ACTIONS = [0.5] * 2 + [-0.5] * 4 + [0.5] * 4 + [-0.5] * 4 + [0.5] * 2
 
 
-@pytest.fixture(scope="session")
-def wiggle_demo(tmp_path_factory) -> Path:
+def wiggle_demo_path(folder: Path) -> Path:
+    """Write the reduced problem's 16-step demonstration into ``folder``; returns its path."""
     from srdcil.demo import Demonstration
     from srdcil.envs.dubins import dubins_step
 
@@ -36,10 +36,16 @@ def wiggle_demo(tmp_path_factory) -> Path:
         s = dubins_step(s, torch.tensor([[a]]))
         states.append(s)
     states = torch.cat(states)
-    path = tmp_path_factory.mktemp("demo") / "wiggle.npz"
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "wiggle.npz"
     Demonstration(states=states, achieved_goals=states[:, :2].clone(),
                   actions=torch.tensor(WIGGLE_ACTIONS).unsqueeze(-1)).save(path)
     return path
+
+
+@pytest.fixture(scope="session")
+def wiggle_demo(tmp_path_factory) -> Path:
+    return wiggle_demo_path(tmp_path_factory.mktemp("demo"))
 
 
 def reduced(demo: Path) -> list[str]:
