@@ -32,7 +32,7 @@ def main():
 
     warm = 500
     cfg = recipe_config(a.recipe, [
-        f"variant={a.variant}", f"device={a.device}", f"collector.total_frames={a.frames + warm}",
+        f"method={a.variant}", f"device={a.device}", f"collector.total_frames={a.frames + warm}",
         f"collector.init_random_frames={warm}", f"collector.frames_per_batch={a.frames_per_batch}",
         "optim.utd_ratio=1.0", "eval.interval=1000000", "checkpoint.interval=1000000", "logger.backend=",
         "progress=false",

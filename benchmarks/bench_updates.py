@@ -26,7 +26,8 @@ from tensordict import TensorDict
 from torch.nn import functional as F
 
 from srdcil.networks import make_actor, make_qvalue, make_value
-from srdcil.objectives import DCILSACLoss, DCILUpdater
+from srdcil.objectives import DCILSACLoss
+from srdcil.updater import DCILUpdater
 
 GAMMA, ALPHA, TAU, CLIP = 0.9, 1e-3, 0.005, (0.0, 5.0)
 
@@ -220,7 +221,7 @@ def main():
 def plain_rate_for_recipe(cfg, seconds: float = 5.0) -> float:
     """Plain-PyTorch update rate (the limit) for the networks and batch of a recipe config."""
     from srdcil.tasks import make_task
-    from srdcil.training import get_variant
+    from srdcil.builders import get_variant
 
     task = make_task(cfg.env)
     dims = (task.demo.observations.shape[-1], task.goals.goals.shape[-1], len(task.goals), int(cfg.env.action_dim))

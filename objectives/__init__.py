@@ -1,4 +1,7 @@
-"""TorchRL LossModules of srdcil (installed as ``srdcil.objectives``)."""
-from .dcil_sac import DCILSACLoss, DCILUpdater
+"""TorchRL LossModules of srdcil (installed as ``srdcil.objectives``).
 
-__all__ = ["DCILSACLoss", "DCILUpdater"]
+The update step that drives them (Adam + Polyak) is :class:`srdcil.updater.DCILUpdater`.
+"""
+from .dcil_sac import DCILSACLoss
+
+__all__ = ["DCILSACLoss"]

@@ -1,6 +1,6 @@
 """DCIL SAC loss: twin-Q MSBE with the DCIL target, optional SAC-v1 V network with Value Cloning.
 
-Semantics (DESIGN.md §1, authors' SAC in research/dcil_reference.md §3.3-§4)
+Semantics (docs/method.md, authors' SAC in docs/reference.md §3.3-§4)
 ---------------------------------------------------------------------------
 Inputs (batch ``[*B]``): ``observation``, ``goal``, ``goal_idx``, ``action``; under ``"next"``:
 ``observation``, ``goal``, ``goal_idx`` (the goal *after* switching), ``reward``, ``terminated``;
@@ -42,7 +42,7 @@ the sum is correct.
 
 Update step
 -----------
-Recommended (joint, one backward; what :class:`DCILUpdater` does by default)::
+Recommended (joint, one backward; what :class:`srdcil.updater.DCILUpdater` does in ``mode="joint"``)::
 
     loss_td = loss(batch)
     sum(v for k, v in loss_td.items() if k.startswith("loss_")).backward()
@@ -51,7 +51,7 @@ Recommended (joint, one backward; what :class:`DCILUpdater` does by default)::
 
 The authors instead do: critic step, Polyak update, then the actor step with the *updated* critic.
 The joint step evaluates the actor loss with the critic of before the step (a one-step lag, the
-usual torchrl / SOTA SAC practice). ``DCILUpdater(mode="sequential")`` reproduces the authors' order
+usual torchrl / SOTA SAC practice). ``srdcil.updater.DCILUpdater(mode="sequential")`` reproduces the authors' order
 (at the cost of a second actor pass).
 
 Speed: the loss calls the core networks directly on tensors (one twin-Q module call per Q evaluation
@@ -76,7 +76,7 @@ from torchrl.objectives import LossModule
 
 from srdcil.networks import GaussianPolicyNet, GoalConditionedMLP, TwinQ
 
-__all__ = ["DCILSACLoss", "DCILUpdater"]
+__all__ = ["DCILSACLoss"]
 
 _LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
 _LOG2 = math.log(2.0)
@@ -517,160 +517,3 @@ class DCILSACLoss(LossModule):
 
     def _ordered(self, out: dict) -> dict:
         return {k: out[k] for k in self.out_keys if k in out}
-
-
-class DCILUpdater:
-    """One SAC update per :meth:`step`: loss, backward, Adam, Polyak.
-
-    Args:
-        loss: a :class:`DCILSACLoss`.
-        lr_actor, lr_critic: Adam learning rates (authors: 1e-3 both, Dubins).
-        lr_value: V network lr (default: ``lr_critic``); lr_alpha: temperature lr.
-        tau: Polyak rate of the targets (``SoftUpdate(loss, tau=tau)``).
-        mode: ``"joint"`` (one backward on the sum of ``loss_*``, one Adam step; default) or
-            ``"sequential"`` (authors' order: critic/V step, Polyak, then actor/alpha step with the
-            updated critic).
-        compile: wrap the update with ``torch.compile``. On the project's 2-core CPU it was
-            *slower* (0.85x of eager at the Dubins size, 0.90x at the Fetch size, after a 5-15 s
-            compile; ``benchmarks/bench_updates.py --compile``), so leave it off on CPU.
-        cudagraphs: on CUDA, capture the update with ``tensordict.nn.CudaGraphModule`` (ignored on
-            CPU). Adam is then built with ``capturable=True``.
-        updater: an existing target updater (default: a new ``SoftUpdate``).
-
-    :meth:`step` returns a TensorDict of detached losses / diagnostics.
-    """
-
-    def __init__(
-        self,
-        loss: DCILSACLoss,
-        lr_actor: float = 1e-3,
-        lr_critic: float = 1e-3,
-        lr_value: float | None = None,
-        lr_alpha: float = 3e-4,
-        tau: float = 0.005,
-        *,
-        mode: str = "joint",
-        compile: bool = False,
-        cudagraphs: bool = False,
-        updater=None,
-        fused: bool | None = None,
-    ):
-        from torchrl.objectives import SoftUpdate
-
-        if mode not in ("joint", "sequential"):
-            raise ValueError(f"DCILUpdater: mode must be 'joint' or 'sequential', got {mode!r}")
-        self.loss = loss
-        self.mode = mode
-        self.tau = float(tau)
-        self.target_updater = updater if updater is not None else SoftUpdate(loss, tau=tau)
-        device = loss.log_alpha.device
-        use_cg = bool(cudagraphs) and device.type == "cuda"
-
-        def leaves(td):
-            return [p for p in td.values(True, True) if isinstance(p, nn.Parameter) and p.requires_grad]
-
-        actor_p = leaves(loss.actor_network_params)
-        critic_p = leaves(loss.qvalue_network_params)
-        value_p = leaves(loss.value_network_params) if loss.has_value else []
-        alpha_p = [loss.log_alpha] if loss.learn_alpha else []
-        lr_value = lr_critic if lr_value is None else lr_value
-        kw = {"capturable": True} if use_cg else {}
-        if fused is None:
-            fused = True
-        kw["fused"] = fused
-        if not fused:
-            kw["foreach"] = True
-
-        def adam(groups):
-            merged: dict[float, list] = {}  # one group per distinct lr (fewer fused kernel calls)
-            for g in groups:
-                merged.setdefault(float(g["lr"]), []).extend(g["params"])
-            groups = [{"params": ps, "lr": lr} for lr, ps in merged.items() if ps]
-            try:
-                return torch.optim.Adam(groups, **kw)
-            except (RuntimeError, ValueError):
-                kw.pop("fused", None)
-                kw["foreach"] = True
-                return torch.optim.Adam(groups, **kw)
-
-        if mode == "joint":
-            self.optimizers = [adam([
-                {"params": actor_p, "lr": lr_actor},
-                {"params": critic_p, "lr": lr_critic},
-                {"params": value_p, "lr": lr_value},
-                {"params": alpha_p, "lr": lr_alpha},
-            ])]
-        else:
-            self.optimizers = [
-                adam([{"params": critic_p, "lr": lr_critic}, {"params": value_p, "lr": lr_value}]),
-                adam([{"params": actor_p, "lr": lr_actor}, {"params": alpha_p, "lr": lr_alpha}]),
-            ]
-        # Polyak on flat tensor lists (same tensors SoftUpdate updates; one foreach call)
-        self._polyak_lists = None
-        try:
-            tu = self.target_updater
-            srcs, tgts = [], []
-            for key, src in tu._sources.items(True, True):
-                key = key if isinstance(key, tuple) else (key,)
-                tgts.append(tu._targets.get(("target_" + key[0], *key[1:])).data)
-                srcs.append(src.data)
-            if srcs and type(tu) is SoftUpdate:
-                self._polyak_lists = (tgts, srcs, 1.0 - tu.eps)
-        except Exception:  # noqa: BLE001  - fall back on updater.step()
-            self._polyak_lists = None
-
-        fn = self._step_joint if mode == "joint" else self._step_sequential
-        if compile:
-            fn = torch.compile(fn)
-        if use_cg:
-            from tensordict.nn import CudaGraphModule
-
-            fn = CudaGraphModule(fn, warmup=10)
-        self._fn = fn
-
-    def state_dict(self) -> dict:
-        """Optimiser states (the networks and targets live in ``loss.state_dict()``)."""
-        return {"mode": self.mode, "optimizers": [o.state_dict() for o in self.optimizers]}
-
-    def load_state_dict(self, state: dict) -> None:
-        if state["mode"] != self.mode:
-            raise ValueError(f"DCILUpdater: checkpoint was saved in mode {state['mode']!r}, this updater is {self.mode!r}")
-        for o, sd in zip(self.optimizers, state["optimizers"]):
-            o.load_state_dict(sd)
-
-    def _polyak(self):
-        if self._polyak_lists is not None:
-            tgts, srcs, w = self._polyak_lists
-            torch._foreach_lerp_(tgts, srcs, w)
-        else:
-            self.target_updater.step()
-
-    def _step_joint(self, batch: TensorDictBase) -> TensorDictBase:
-        out = self.loss(batch)
-        total = sum(v for k, v in out.items() if k.startswith("loss_"))
-        total.backward()
-        opt = self.optimizers[0]
-        opt.step()
-        opt.zero_grad(set_to_none=True)
-        self._polyak()
-        return out.detach()
-
-    def _step_sequential(self, batch: TensorDictBase) -> TensorDictBase:
-        crit_opt, act_opt = self.optimizers
-        c = self.loss.critic_loss(batch)
-        sum(v for k, v in c.items() if k.startswith("loss_")).backward()
-        crit_opt.step()
-        crit_opt.zero_grad(set_to_none=True)
-        self._polyak()
-        a = self.loss.actor_loss(batch)
-        sum(v for k, v in a.items() if k.startswith("loss_")).backward()
-        act_opt.step()
-        act_opt.zero_grad(set_to_none=True)
-        c.update(a)
-        return c.detach()
-
-    def step(self, batch: TensorDictBase) -> TensorDictBase:
-        """One update on ``batch``; returns the detached losses and diagnostics."""
-        return self._fn(batch)
-
-    __call__ = step

@@ -24,6 +24,8 @@ file, the field and what was expected.
 """
 from __future__ import annotations
 
+from srdcil.errors import UserError
+
 import importlib.resources
 import io
 import json
@@ -42,7 +44,7 @@ _REQUIRED = ("states", "achieved_goals", "schema_version")
 _KNOWN = set(_TENSOR_FIELDS) | {"schema_version", "meta_json"}
 
 
-class DemonstrationError(ValueError):
+class DemonstrationError(UserError, ValueError):
     """A demonstration (in memory or on disk) is malformed; the message names the field."""
 
 

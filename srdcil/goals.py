@@ -1,7 +1,7 @@
 """Goal extraction from a demonstration, and the demo rows used by the Demo-Buffer and Value Cloning.
 
 * :func:`extract_goals` cuts the demonstration by arc length in goal space (DCIL-II extractor,
-  research/dcil_reference.md §2.2; Fetch variant §6).
+  docs/reference.md §2.2; Fetch variant §2.3).
 * :func:`demo_transitions` builds Demo-Buffer rows (needs demo actions).
 * :func:`demo_value_states` builds the states-only rows of Value Cloning with their V_demo target.
 

@@ -130,7 +130,7 @@ def load_agent(path: str | Path) -> LoadedAgent:
     from omegaconf import OmegaConf
 
     from srdcil.tasks import make_task
-    from srdcil.training import get_variant, make_agent, make_loss_and_updater
+    from srdcil.builders import get_variant, make_agent, make_loss_and_updater
 
     path = Path(path)
     ckpt = torch.load(path, map_location="cpu", weights_only=False)
@@ -297,7 +297,8 @@ def eval_rollout(agent: LoadedAgent) -> tuple[np.ndarray, int, int]:
     Returns ``(achieved goals [T+1, G], goals reached, goal index at the end)``: the last is the goal
     the chain stalls at (the last goal when the chain succeeds).
     """
-    from srdcil.training import evaluate, make_env
+    from srdcil.builders import make_env
+    from srdcil.evaluation import evaluate
 
     cfg, v = agent.cfg, agent.variant
     ags_cfg = cfg.get("ags") or {}

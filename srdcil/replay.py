@@ -483,9 +483,13 @@ class MixedReplay:
             "att_count": self._att_count,
             "att_last": self._att_last,
             "layout": None if self._layout is None else self._layout.__dict__.copy(),
+            # the sampler's random stream: a resumed run draws the same batches as an unbroken one
+            "generator": None if self.generator is None else self.generator.get_state(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        if state.get("generator") is not None and self.generator is not None:
+            self.generator.set_state(state["generator"])
         if state["train"] is None:
             self._train, self._n_envs, self._t = None, None, 0
             return

@@ -1,6 +1,6 @@
 """The DCIL target rule: reward, next goal, next index and termination from a transition.
 
-This is the single place where the GC-MDP of DCIL (DESIGN.md §1) is written down. It is applied
+This is the single place where the GC-MDP of DCIL (docs/method.md) is written down. It is applied
 to demo transitions when they are built and to every sampled training row (relabelled or not),
 so learning targets never depend on what the control flow did during collection.
 """

@@ -1,9 +1,19 @@
-import os
+"""Shared fixtures; tests run with one torch thread (a 2-core shared CPU: see README)."""
+from __future__ import annotations
 
-os.environ.setdefault("WANDB_MODE", "disabled")
-os.environ.setdefault("MUJOCO_GL", "egl")
+import sys
+from pathlib import Path
 
+import pytest
 import torch
 
-# One thread: on this 2-core shared machine, two OpenMP threads collapse when the other core is busy.
+sys.path.insert(0, str(Path(__file__).parent))
 torch.set_num_threads(1)
+
+from _helpers import wiggle_demo_path  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def wiggle_demo(tmp_path_factory) -> Path:
+    """The reduced maze problem's 16-step demonstration (see tests/_helpers.py)."""
+    return wiggle_demo_path(tmp_path_factory.mktemp("demo"))

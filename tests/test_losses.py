@@ -8,7 +8,8 @@ from torchrl.modules import TanhNormal
 from torchrl.objectives import SoftUpdate
 
 from srdcil.networks import make_actor, make_qvalue, make_value
-from srdcil.objectives import DCILSACLoss, DCILUpdater
+from srdcil.objectives import DCILSACLoss
+from srdcil.updater import DCILUpdater
 
 OBS, GOAL, N, ACT = 2, 2, 3, 1
 GAMMA = 0.9

@@ -3,8 +3,8 @@
 The checkpoints are untrained agents (small networks) whose weights are perturbed at random, live
 and target critics differently, so that the values vary over the maze and a figure that read the
 wrong network (live instead of target Q, stochastic instead of deterministic action, wrong goal
-index) would give different numbers. They are written with ``srdcil.training.save_checkpoint``
-itself, so the test follows the real checkpoint format.
+index) would give different numbers. They are written with ``srdcil.checkpoint.save``
+with the entries the training loop writes, so the test follows the real checkpoint format.
 """
 from __future__ import annotations
 
@@ -19,7 +19,10 @@ from hydra import compose, initialize_config_dir
 from srdcil import plots
 from srdcil.goals import demo_transitions, demo_value_states
 from srdcil.tasks import make_task
-from srdcil.training import get_variant, goal_transform, make_agent, make_env, make_loss_and_updater, save_checkpoint
+from omegaconf import OmegaConf
+
+from srdcil import checkpoint as ckpt_io
+from srdcil.builders import get_variant, goal_transform, make_agent, make_env, make_loss_and_updater
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG_DIR = ROOT / "recipes" / "config"
@@ -39,7 +42,7 @@ def _perturb(params, gen: torch.Generator, scale: float) -> None:
 
 
 def _make_checkpoint(path: Path, config: str, variant: str, seed: int, extra=()) -> Path:
-    cfg = _config(config, [f"variant={variant}", "network.hidden=[32,32]", *extra])
+    cfg = _config(config, [f"method={variant}", "network.hidden=[32,32]", *extra])
     task = make_task(cfg.env)
     v = get_variant(variant)
     actor, qvalue, value = make_agent(task, cfg, v, "cpu")
@@ -53,8 +56,9 @@ def _make_checkpoint(path: Path, config: str, variant: str, seed: int, extra=())
     thr = goal_transform(env).ags_thresholds
     thr.copy_(torch.linspace(0.0, 1.0, thr.numel()))
     thr[-1] = float("nan")
-    save_checkpoint(path, cfg=cfg, frames=1234, actor=actor, loss=loss, updater=updater, env=env,
-                    best={"eval/goals_reached": 0})
+    ckpt_io.save(path, {"frames": 1234, "actor": actor.state_dict(), "loss": loss.state_dict(),
+                        "updater": updater.state_dict(), "ags_thresholds": thr.clone(),
+                        "config": OmegaConf.to_container(cfg, resolve=True), "best": {"eval/goals_reached": 0}})
     return path
 
 

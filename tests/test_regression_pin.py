@@ -24,8 +24,8 @@ PIN = Path(__file__).parent / "data" / "regression_pin.json"
 sys.path.insert(0, str(Path(__file__).parent))
 
 CASES = {
-    "db_ags": ("sr_dcil_dubins", ["variant=db_ags"]),
-    "vc_ags": ("sr_dcil_dubins", ["variant=vc_ags"]),
+    "db_ags": ("sr_dcil_dubins", ["method=db_ags"]),
+    "vc_ags": ("sr_dcil_dubins", ["method=vc_ags"]),
     "dcil_ii": ("dcil_ii_dubins", []),
 }
 FLOAT_KEYS = ("train/loss_qvalue", "train/q_mean", "train/loss_actor", "train/loss_value",
@@ -33,7 +33,7 @@ FLOAT_KEYS = ("train/loss_qvalue", "train/q_mean", "train/loss_actor", "train/lo
 
 
 def _short_run(case: str, tmp: Path) -> dict:
-    from test_training import config, reduced, wiggle_demo_path
+    from _helpers import config, reduced, wiggle_demo_path
     from srdcil.training import train
 
     torch.set_num_threads(1)

@@ -63,7 +63,7 @@ def test_shipped_demo_goal_count(demo):
 
 @pytest.mark.slow
 def test_regeneration_matches_shipped(demo):
-    from srdcil.rrt import rrt_demo
+    from srdcil.envs.dubins.rrt import rrt_demo
 
     again = rrt_demo(seed=0)
     assert torch.equal(again.actions, demo.actions)

@@ -19,54 +19,14 @@ from hydra import compose, initialize_config_dir
 
 from srdcil.training import VARIANTS, train
 
-ROOT = Path(__file__).resolve().parents[1]
-CONFIG_DIR = ROOT / "recipes" / "config"
-
-WIGGLE_ACTIONS = [0.5] * 2 + [-0.5] * 4 + [0.5] * 4 + [-0.5] * 4 + [0.5] * 2
-
-
-def wiggle_demo_path(folder: Path) -> Path:
-    """Write the reduced problem's 16-step demonstration into ``folder``; returns its path."""
-    from srdcil.demo import Demonstration
-    from srdcil.envs.dubins import dubins_step
-
-    s = torch.tensor([[0.5, 0.5, 0.0]])
-    states = [s]
-    for a in WIGGLE_ACTIONS:
-        s = dubins_step(s, torch.tensor([[a]]))
-        states.append(s)
-    states = torch.cat(states)
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / "wiggle.npz"
-    Demonstration(states=states, achieved_goals=states[:, :2].clone(),
-                  actions=torch.tensor(WIGGLE_ACTIONS).unsqueeze(-1)).save(path)
-    return path
-
-
-@pytest.fixture(scope="session")
-def wiggle_demo(tmp_path_factory) -> Path:
-    return wiggle_demo_path(tmp_path_factory.mktemp("demo"))
-
-
-def reduced(demo: Path) -> list[str]:
-    return [f"env.demo={demo}", "env.goal_eps=0.7"] + REDUCED
-
-
-REDUCED = [ "network.hidden=[64,64]", "env.n_envs=4", "collector.frames_per_batch=12",
-    "collector.init_random_frames=200", "eval.interval=250", "stop_on_chain_success=true", "progress=false",
-    "logger.backend=", "eval.plot=false",
-]
-
-
-def config(name: str, overrides: list[str]):
-    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-        return compose(config_name=name, overrides=overrides)
+from _helpers import CONFIG_DIR, REDUCED, ROOT, config, reduced  # noqa: F401 (wiggle_demo: conftest)
 
 
 def _untrained_goals(cfg) -> int:
     """Goals the untrained deterministic policy reaches in the chained evaluation."""
     from srdcil.tasks import make_task
-    from srdcil.training import evaluate, get_variant, make_agent, make_env
+    from srdcil.builders import get_variant, make_agent, make_env
+    from srdcil.evaluation import evaluate
 
     task = make_task(cfg.env)
     actor, _, _ = make_agent(task, cfg, get_variant("vanilla"), "cpu")
@@ -84,7 +44,7 @@ def test_reduced_problem_is_not_solved_by_the_untrained_policy(wiggle_demo):
 
 @pytest.mark.parametrize("variant", sorted(VARIANTS))
 def test_each_variant_learns_the_reduced_chain(variant, tmp_path, wiggle_demo):
-    cfg = config("sr_dcil_dubins", reduced(wiggle_demo) + [f"variant={variant}", "collector.total_frames=8000"])
+    cfg = config("sr_dcil_dubins", reduced(wiggle_demo) + [f"method={variant}", "collector.total_frames=8000"])
     r = train(cfg, run_dir=tmp_path)
     assert r["first_chain_success_step"] is not None, (
         f"{variant}: chained evaluation never reached the final goal in 8000 env steps "
@@ -109,22 +69,22 @@ def test_demo_buffer_variant_needs_demo_actions(tmp_path):
     d = load_shipped("dubins")
     path = tmp_path / "states_only.npz"
     Demonstration(states=d.states, achieved_goals=d.achieved_goals).save(path)
-    cfg = config("sr_dcil_dubins", REDUCED_SHIPPED + ["variant=db", f"env.demo={path}", "collector.total_frames=300"])
+    cfg = config("sr_dcil_dubins", REDUCED_SHIPPED + ["method=db", f"env.demo={path}", "collector.total_frames=300"])
     with pytest.raises(ValueError, match="needs demo actions"):
         train(cfg, run_dir=tmp_path / "run")
     # value cloning needs states only
-    cfg = config("sr_dcil_dubins", REDUCED_SHIPPED + ["variant=vc", f"env.demo={path}", "collector.total_frames=300"])
+    cfg = config("sr_dcil_dubins", REDUCED_SHIPPED + ["method=vc", f"env.demo={path}", "collector.total_frames=300"])
     train(cfg, run_dir=tmp_path / "run_vc")
 
 
 def test_checkpoint_and_resume(tmp_path, wiggle_demo):
-    cfg = config("sr_dcil_dubins", reduced(wiggle_demo) + ["variant=db_ags", "collector.total_frames=480",
+    cfg = config("sr_dcil_dubins", reduced(wiggle_demo) + ["method=db_ags", "collector.total_frames=480",
                                                 "stop_on_chain_success=false"])
     train(cfg, run_dir=tmp_path / "a")
     ckpt = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
     assert ckpt["frames"] == 480
     assert {"actor", "loss", "updater", "ags_thresholds", "config", "replay"} <= set(ckpt)
-    cfg2 = config("sr_dcil_dubins", reduced(wiggle_demo) + ["variant=db_ags", "collector.total_frames=720",
+    cfg2 = config("sr_dcil_dubins", reduced(wiggle_demo) + ["method=db_ags", "collector.total_frames=720",
                                                  "stop_on_chain_success=false",
                                                  f"resume={tmp_path / 'a' / 'checkpoint.pt'}"])
     r = train(cfg2, run_dir=tmp_path / "b")
@@ -138,8 +98,9 @@ def test_checkpoint_and_resume(tmp_path, wiggle_demo):
     rb = MixedReplay(task.goals.goals, task.goals.radius, capacity=10_000)
     rb.load_state_dict(ck_b["replay"])
     assert len(rb) == 720
-    # only the 240 new env steps were collected and trained on (no second warm-up from scratch)
-    assert 0 < r["updates"] <= 240 + 12
+    # only the 240 new env steps were collected and trained on (no second warm-up from scratch);
+    # the update count goes on from the checkpoint's
+    assert r["updates"] - ckpt["progress"]["n_updates"] == 240
     # the resumed run continued from the checkpoint: its first evaluation is logged at step 480
     first = json.loads((tmp_path / "b" / "metrics.jsonl").read_text().splitlines()[0])
     assert first["env_steps"] > 480
@@ -148,7 +109,7 @@ def test_checkpoint_and_resume(tmp_path, wiggle_demo):
 def test_recipe_script_runs_from_the_command_line(tmp_path, wiggle_demo):
     out = tmp_path / "run"
     cmd = [sys.executable, "recipes/sr_dcil_dubins.py", *reduced(wiggle_demo), "collector.total_frames=240",
-           "variant=vc_ags", f"hydra.run.dir={out}"]
+           "method=vc_ags", f"hydra.run.dir={out}"]
     p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr[-2000:]
     res = json.loads((out / "result.json").read_text())
@@ -161,7 +122,7 @@ def test_fetch_recipe_smoke(tmp_path):
     cfg = config("sr_dcil_fetch", ["network.hidden=[32,32]", "collector.total_frames=40",
                                    "collector.init_random_frames=20", "optim.batch_size=32",
                                    "eval.interval=100000", "progress=false", "logger.backend=",
-                                   "variant=vc"])
+                                   "method=vc"])
     r = train(cfg, run_dir=tmp_path)
     assert r["env_steps"] == 40 and r["updates"] > 0
     assert len(r["ags_thresholds"]) == 12  # goals of the whole shipped demo (ε 0.5, 10-25 steps each)
@@ -170,7 +131,7 @@ def test_fetch_recipe_smoke(tmp_path):
 def test_stop_after_success_then_auto_resume_skips_the_finished_run(tmp_path, wiggle_demo):
     """A run continues ``stop_after_success`` env steps after its first full-chain success, then
     stops; starting it again with ``resume=auto`` finds its final checkpoint and does nothing."""
-    over = reduced(wiggle_demo) + ["variant=db", "collector.total_frames=8000", "stop_on_chain_success=false",
+    over = reduced(wiggle_demo) + ["method=db", "collector.total_frames=8000", "stop_on_chain_success=false",
                                    "stop_after_success=500", "resume=auto"]
     r = train(config("sr_dcil_dubins", over), run_dir=tmp_path)
     first = r["first_chain_success_step"]
@@ -195,8 +156,8 @@ def test_method_group_and_ablation_experiment_configs():
     assert method_name(cfg) == "dcil_ii"
     cfg = config("sr_dcil_dubins", ["method=db_ags_paper"])
     assert cfg.variant == "db_ags" and cfg.ags.threshold_window is None and method_name(cfg) == "db_ags_paper"
-    cfg = config("sr_dcil_dubins", ["variant=vc"])  # no method group: the variant names the run
-    assert method_name(cfg) == "vc" and cfg.ags.threshold_window == 2000
+    cfg = config("sr_dcil_dubins", ["method=vc"])
+    assert method_name(cfg) == "vc" and cfg.variant == "vc" and cfg.ags.threshold_window == 2000
     assert method_name(config("dcil_ii_dubins", [])) == "dcil_ii"
     cfg = config("sr_dcil_dubins", ["experiment=dubins_ablation", "method=vc_ags"])
     assert cfg.collector.total_frames == 100_000 and cfg.stop_after_success == 20_000

@@ -1,6 +1,6 @@
 """``DemoResetTransform``: the DCIL-II reset scheme (resets to demonstrated states, weighted goals).
 
-DCIL-II (DESIGN.md §1, research/dcil_reference.md §3.5) trains each goal g_i from the demonstrated
+DCIL-II (docs/method.md, docs/reference.md §3.5) trains each goal g_i from the demonstrated
 state where the demo reached g_{i−1} (s_0 for g_0), and picks which goal to train with weights
 based on recent success rates. This transform adds that scheme to any env that can be reset to a
 stored full state through a ``reset_state`` entry of the reset input (as

@@ -1,7 +1,7 @@
 """``GoalSequenceTransform``: the single-reset goal chain of SR-DCIL as a TorchRL env transform.
 
 The transform turns any TorchRL env that exposes an achieved-goal entry into the goal-conditioned
-MDP of SR-DCIL (DESIGN.md §1): it holds the goal table g_0 … g_{N−1}, appends the current goal and
+MDP of SR-DCIL (docs/method.md): it holds the goal table g_0 … g_{N−1}, appends the current goal and
 its index to the observation, computes success and the sparse reward, switches goals, counts the
 per-goal budget and optionally performs Approximate Goal Switching (AGS). It knows nothing about
 the env behind it.

@@ -2,7 +2,7 @@
 
 Our own model, written from published facts (Fetch arm joint offsets, axes and limits; the layout of
 the Go-Explore "teleOp_boxes_1" scene used by DCIL-II / SR-DCIL; see
-``shared/research/fetch_env.md``). No mesh or XML from another project is used.
+``docs/reference.md`` §6). No mesh or XML from another project is used.
 
 World frame, metres. Summary:
 

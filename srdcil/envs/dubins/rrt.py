@@ -1,7 +1,7 @@
 """Kinodynamic RRT demonstration generator for the Dubins maze.
 
 The paper says its maze demonstration came from an RRT; the authors' repositories ship no planner
-(research/dcil_reference.md §2.1), so this is our own, run on the environment's own dynamics
+(docs/reference.md §2.1), so this is our own, run on the environment's own dynamics
 (:func:`srdcil.envs.dubins.dubins_step`, float32, CPU) so that replaying the actions in
 :class:`~srdcil.envs.dubins.DubinsMazeEnv` gives the stored states exactly.
 
@@ -30,7 +30,7 @@ Algorithm (deterministic given the seed; numpy ``default_rng`` for every random 
 6. The actions are finally replayed from the start state through ``DubinsMazeEnv`` (batch 1, CPU,
    float32) and those replayed states are stored, so the replay reproduces them bit for bit.
 
-CLI: ``python -m srdcil.rrt --seed 0 --out srdcil/data/dubins_demo.npz [--plot demo.png]``
+CLI: ``python -m srdcil.envs.dubins.rrt --seed 0 --out srdcil/data/dubins_demo.npz [--plot demo.png]``
 regenerates the shipped demo (about 10 s): 99 env steps, path length 19.75, 17 goals at eps 1.0
 (the authors' demo: 19.3 long, 19 goals at 0.1-long steps).
 """
@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from srdcil.demo import Demonstration
-from srdcil.envs.dubins import (
+from srdcil.envs.dubins.env import (
     DEFAULT_START_STATE,
     MAZE_UNIT_WALLS,
     SOLUTION_PATH,

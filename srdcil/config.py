@@ -1,0 +1,230 @@
+"""The typed configuration of a training run: every default in one place, every range checked.
+
+The recipes' YAML files (``recipes/config/``) are hydra configs built on this schema:
+
+* ``srdcil_schema`` (this module, registered in hydra's ConfigStore): the fields, their types and
+  the defaults shared by every environment (the authors' Dubins settings where they exist);
+* ``env/<name>.yaml``: one file per environment (its task, its demonstration settings and the
+  authors' hyper-parameters for it);
+* ``method/<name>.yaml``: SR-DCIL variants and the DCIL-II baseline;
+* ``experiment/<name>.yaml``: prepared multiruns (e.g. the maze ablation).
+
+Types are enforced by OmegaConf (a misspelled key or a string for an int is an error before any
+work); :func:`validate` checks ranges and cross-field rules, raising :class:`ConfigError` with the
+key in the message. Library code reads ``cfg.key`` directly: no default is repeated elsewhere.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional
+
+from omegaconf import MISSING, DictConfig, OmegaConf
+
+from srdcil.errors import ConfigError
+
+__all__ = ["TrainConfig", "register", "validate", "VARIANT_NAMES"]
+
+VARIANT_NAMES = ("vanilla", "db", "db_ags", "vc", "vc_ags")
+
+
+@dataclass
+class EnvConfig:
+    name: str = MISSING  # a folder srdcil/envs/<name>/ with task.py (or a registered task)
+    demo: Optional[str] = None  # path to a demonstration .npz; None: the env's shipped one
+    n_envs: int = 5
+    goal_eps: float = MISSING  # arc length between goals, in goal space
+    extract_min_steps: int = 1  # demo steps per goal, at least ...
+    extract_max_steps: Optional[int] = None  # ... and at most (None: no bound)
+    max_demo_steps: Optional[int] = None  # use only the first K demo states (None: all)
+    goal_radius: float = MISSING  # success radius delta
+    max_steps_per_goal: int = MISSING  # per-goal budget T_max
+    options: Dict[str, Any] = field(default_factory=dict)  # env-specific, checked by the env's task
+
+
+@dataclass
+class CollectorConfig:
+    total_frames: int = 150_000  # env steps
+    frames_per_batch: int = 10  # env steps per collection round (all envs together)
+    init_random_frames: int = 500  # uniform random actions, no updates
+
+
+@dataclass
+class OptimConfig:
+    utd_ratio: float = 1.0  # SAC updates per env step
+    batch_size: int = 256
+    gamma: float = 0.9
+    lr_actor: float = 1e-3
+    lr_critic: float = 1e-3
+    lr_value: Optional[float] = None  # V network (vc*); None: lr_critic
+    tau: float = 0.005
+    alpha: float = 1e-3  # entropy temperature (fixed unless learn_alpha)
+    learn_alpha: bool = False
+    target_clip: Optional[List[float]] = field(default_factory=lambda: [0.0, 5.0])  # None: no clipping
+    entropy_backup: bool = False
+    vc_coef: float = 1.0  # extra factor on the demo rows of the V batch (1 = the paper)
+    update_mode: str = "sequential"  # authors' order: critic, Polyak, actor | joint: one backward
+
+
+@dataclass
+class NetworkConfig:
+    hidden: List[int] = field(default_factory=lambda: [400, 300])
+
+
+@dataclass
+class ReplayConfig:
+    capacity: int = 1_000_000
+    demo_fraction: float = 0.2  # demo rows per SAC batch (db*) / per V batch (vc*)
+    relabel_fraction: float = 0.5  # training rows relabelled with a later achieved goal of the same attempt
+
+
+@dataclass
+class AGSConfig:
+    k: int = 2  # switch k steps after AGS first fires
+    threshold_window: Optional[int] = 2000  # env steps per threshold window; None: the paper's running max
+
+
+@dataclass
+class EvalConfig:
+    interval: int = 1000  # env steps between deterministic chained evaluations
+    plot: bool = True  # a picture of the best evaluation rollout
+
+
+@dataclass
+class CheckpointConfig:
+    save_replay: bool = True  # keep the training storage, so a resumed run continues exactly
+    interval: int = 10_000
+    keep_at: List[int] = field(default_factory=list)  # also keep checkpoint_<N>.pt (no replay) at these env steps
+
+
+@dataclass
+class LoggerConfig:
+    backend: str = "csv"  # csv | wandb | tensorboard | '' (none)
+    project: str = "srdcil"
+    group: Optional[str] = None
+    exp_name: Optional[str] = None
+    mode: str = "online"  # wandb: falls back to offline when not logged in
+
+
+@dataclass
+class TrainConfig:
+    method: str = "${variant}"  # the name results are filed under (set by the method group)
+    variant: str = "db_ags"  # vanilla | db | db_ags | vc | vc_ags
+    seed: int = 0
+    reset_scheme: str = "single"  # single (SR-DCIL) | demo_states (DCIL-II baseline)
+    device: str = "cpu"  # cpu | cuda
+    num_threads: Optional[int] = 1  # CPU threads for torch (1 is fastest on a small shared CPU)
+    progress: bool = True  # tqdm progress bar
+    resume: Optional[str] = None  # a checkpoint.pt to continue; auto: this run dir's checkpoint.pt if any
+    stop_on_chain_success: bool = False  # stop at the first full-chain success (= stop_after_success: 0)
+    stop_after_success: Optional[int] = None  # env steps to go on after the first full-chain success
+    compile: bool = False  # torch.compile the update step
+    cudagraphs: bool = False  # capture the update step as a CUDA graph (cuda only)
+    debug: bool = False  # user errors print their traceback too
+    env: EnvConfig = field(default_factory=EnvConfig)
+    collector: CollectorConfig = field(default_factory=CollectorConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    replay: ReplayConfig = field(default_factory=ReplayConfig)
+    ags: AGSConfig = field(default_factory=AGSConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+
+
+_REGISTERED = False
+
+
+def register() -> None:
+    """Store the schema in hydra's ConfigStore as ``srdcil_schema`` and add the ``${pid:}`` resolver
+    (run dirs carry the process id, so two runs started in the same second never share one)."""
+    global _REGISTERED
+    if _REGISTERED:
+        return
+    import os
+
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(name="srdcil_schema", node=TrainConfig)
+    if not OmegaConf.has_resolver("pid"):
+        OmegaConf.register_new_resolver("pid", os.getpid, use_cache=True)
+    _REGISTERED = True
+
+
+register()
+
+
+# ------------------------------------------------------------------------------------------ checks
+def _check(ok: bool, key: str, value, expected: str) -> None:
+    if not ok:
+        raise ConfigError(f"{key}={value!r}: expected {expected}")
+
+
+def validate(cfg: DictConfig) -> DictConfig:
+    """Range and consistency checks of a composed config (before any work); returns ``cfg``.
+
+    Raises :class:`ConfigError` naming the first offending key.
+    """
+    if OmegaConf.is_missing(cfg.env, "name"):
+        raise ConfigError("env.name is missing: choose an environment, e.g. env=dubins")
+    for k in ("goal_eps", "goal_radius", "max_steps_per_goal"):
+        if OmegaConf.is_missing(cfg.env, k):
+            raise ConfigError(f"env.{k} is missing: the env config (env/{cfg.env.name}.yaml) must set it")
+    c = cfg
+    _check(c.variant in VARIANT_NAMES, "variant", c.variant, f"one of {', '.join(VARIANT_NAMES)}")
+    if c.method in VARIANT_NAMES and c.method != c.variant:
+        raise ConfigError(f"method={c.method!r} but variant={c.variant!r}: choose the variant with method=NAME "
+                          "(recipes/config/method/), not variant=")
+    _check(c.reset_scheme in ("single", "demo_states"), "reset_scheme", c.reset_scheme, "'single' or 'demo_states'")
+    _check(str(c.device).split(":")[0] in ("cpu", "cuda"), "device", c.device, "cpu or cuda[:N]")
+    _check(c.num_threads is None or c.num_threads >= 1, "num_threads", c.num_threads, ">= 1 or null")
+    _check(c.stop_after_success is None or c.stop_after_success >= 0, "stop_after_success",
+           c.stop_after_success, ">= 0 or null")
+    e = c.env
+    _check(e.n_envs >= 1, "env.n_envs", e.n_envs, ">= 1")
+    _check(e.goal_eps > 0, "env.goal_eps", e.goal_eps, "> 0")
+    _check(e.goal_radius > 0, "env.goal_radius", e.goal_radius, "> 0")
+    _check(e.max_steps_per_goal >= 1, "env.max_steps_per_goal", e.max_steps_per_goal, ">= 1")
+    _check(e.extract_min_steps >= 1, "env.extract_min_steps", e.extract_min_steps, ">= 1")
+    _check(e.extract_max_steps is None or e.extract_max_steps >= e.extract_min_steps, "env.extract_max_steps",
+           e.extract_max_steps, f">= env.extract_min_steps ({e.extract_min_steps}) or null")
+    _check(e.max_demo_steps is None or e.max_demo_steps >= 2, "env.max_demo_steps", e.max_demo_steps, ">= 2 or null")
+    col = c.collector
+    _check(col.frames_per_batch >= 1, "collector.frames_per_batch", col.frames_per_batch, ">= 1")
+    _check(col.total_frames >= col.frames_per_batch, "collector.total_frames", col.total_frames,
+           f">= collector.frames_per_batch ({col.frames_per_batch})")
+    _check(0 <= col.init_random_frames < col.total_frames, "collector.init_random_frames", col.init_random_frames,
+           f">= 0 and below collector.total_frames ({col.total_frames}): otherwise no update would ever run")
+    o = c.optim
+    _check(o.utd_ratio > 0, "optim.utd_ratio", o.utd_ratio, "> 0")
+    _check(o.batch_size >= 2, "optim.batch_size", o.batch_size, ">= 2")
+    _check(0 < o.gamma <= 1, "optim.gamma", o.gamma, "in (0, 1]")
+    for k in ("lr_actor", "lr_critic", "alpha"):
+        _check(o[k] > 0, f"optim.{k}", o[k], "> 0")
+    _check(o.lr_value is None or o.lr_value > 0, "optim.lr_value", o.lr_value, "> 0 or null")
+    _check(0 < o.tau <= 1, "optim.tau", o.tau, "in (0, 1]")
+    _check(o.vc_coef >= 0, "optim.vc_coef", o.vc_coef, ">= 0")
+    _check(o.update_mode in ("sequential", "joint"), "optim.update_mode", o.update_mode, "'sequential' or 'joint'")
+    if o.target_clip is not None:
+        tc = list(o.target_clip)
+        _check(len(tc) == 2 and tc[0] < tc[1], "optim.target_clip", tc, "[low, high] with low < high, or null")
+    _check(len(c.network.hidden) >= 1 and all(h >= 1 for h in c.network.hidden), "network.hidden",
+           list(c.network.hidden), "a non-empty list of layer widths >= 1")
+    r = c.replay
+    _check(r.capacity >= col.frames_per_batch, "replay.capacity", r.capacity,
+           f">= collector.frames_per_batch ({col.frames_per_batch})")
+    _check(0 <= r.demo_fraction < 1, "replay.demo_fraction", r.demo_fraction, "in [0, 1)")
+    _check(0 <= r.relabel_fraction <= 1, "replay.relabel_fraction", r.relabel_fraction, "in [0, 1]")
+    _check(c.ags.k >= 1, "ags.k", c.ags.k, ">= 1")
+    _check(c.ags.threshold_window is None or c.ags.threshold_window >= 1, "ags.threshold_window",
+           c.ags.threshold_window, ">= 1 or null (the paper's running max)")
+    _check(c.eval.interval >= 1, "eval.interval", c.eval.interval, ">= 1")
+    _check(c.checkpoint.interval >= 1, "checkpoint.interval", c.checkpoint.interval, ">= 1")
+    _check(all(k >= 1 for k in c.checkpoint.keep_at), "checkpoint.keep_at", list(c.checkpoint.keep_at),
+           "env steps >= 1")
+    _check(c.logger.backend in ("", "csv", "wandb", "tensorboard"), "logger.backend", c.logger.backend,
+           "csv, wandb, tensorboard or '' (none)")
+    _check(c.logger.mode in ("online", "offline", "disabled"), "logger.mode", c.logger.mode,
+           "online, offline or disabled")
+    if c.cudagraphs and not str(c.device).startswith("cuda"):
+        raise ConfigError(f"cudagraphs=true needs device=cuda (device={c.device!r})")
+    return cfg

@@ -1,0 +1,79 @@
+"""Fetch grasp-and-shelve as a :class:`srdcil.tasks.Task` (found by ``env.name=fetch``)."""
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+from tensordict import TensorDictBase
+
+from srdcil.demo import Demonstration
+from srdcil.errors import ConfigError, DemoMismatchError
+from srdcil.goals import GoalSequence
+from srdcil.envs.base import Task, check_options
+
+from .core import short_observation
+from .torch_env import FetchShelfTorchEnv
+
+
+def make_task(env_cfg, demo, goals) -> Task:
+    """Fetch grasp-and-shelve: chained evaluation reports task success; pictures of the paths."""
+    opts = check_options(env_cfg, {"obs_dim": 268})
+    obs_dim = int(opts["obs_dim"])
+    if obs_dim not in (268, 604):
+        raise ConfigError(f"env.options.obs_dim={obs_dim}: expected 268 or 604")
+    if demo.observations.shape[-1] != obs_dim:
+        if obs_dim != 268 or demo.observations.shape[-1] != 604:
+            raise DemoMismatchError(f"env.options.obs_dim={obs_dim} but the demonstration's observations are "
+                             f"{demo.observations.shape[-1]}-D (expected 604 or 268)")
+        demo = replace(demo, observations=short_observation(demo.observations))
+
+    def make_base_env(batch_size: int, device="cpu"):
+        return FetchShelfTorchEnv(batch_size=batch_size, device=device, obs_dim=obs_dim)
+
+    def eval_metrics(rollout: TensorDictBase) -> dict:
+        ts = rollout.get(("next", "task_success"), None)
+        return {} if ts is None else {"task_success": bool(ts.any())}
+
+    def plot_rollout(rollout: TensorDictBase, path: Path) -> None:
+        plot_fetch_rollout(rollout, demo, goals, path, obs_dim=obs_dim)
+
+    return Task("fetch", demo, goals, make_base_env, env_cfg.max_steps_per_goal, eval_metrics, plot_rollout)
+
+
+def plot_fetch_rollout(rollout: TensorDictBase, demo: Demonstration, goals: GoalSequence, path: Path,
+                       obs_dim: int = 268, n_frames: int = 6) -> None:
+    """Top (x, y) and side (y, z) views of the gripper and object paths of an evaluation rollout,
+    beside the demonstration, its goals and the target compartment. When a GL backend exists
+    (EGL/OSMesa), also an image strip ``<path>_frames.png`` of the rollout replayed with rendering."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    from .core import SUCCESS_BOX, render_strip, rendering_available
+
+    ag = torch.cat([rollout["achieved_goal"][:1], rollout["next", "achieved_goal"]], 0).cpu()
+    dg, g = demo.achieved_goals.cpu(), goals.goals.cpu()
+    fig, axes = plt.subplots(1, 2, figsize=(9, 4))
+    for ax, (a, b), names in zip(axes, ((0, 1), (1, 2)), (("x", "y"), ("y", "z"))):
+        lo, hi = SUCCESS_BOX
+        ax.add_patch(Rectangle((lo[a], lo[b]), hi[a] - lo[a], hi[b] - lo[b], color="tab:green", alpha=0.2,
+                               label="target compartment"))
+        for off, lab, c in ((0, "gripper", "tab:blue"), (3, "object", "tab:orange")):
+            ax.plot(dg[:, off + a], dg[:, off + b], "--", color=c, alpha=0.5, label=f"demo {lab}")
+            ax.plot(ag[:, off + a], ag[:, off + b], "-", color=c, label=f"eval {lab}")
+            ax.scatter(g[:, off + a], g[:, off + b], color=c, s=12)
+        ax.set_xlabel(names[0])
+        ax.set_ylabel(names[1])
+        ax.set_aspect("equal")
+    axes[1].legend(fontsize=7, loc="best")
+    fig.suptitle(path.stem)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    if rendering_available():
+        actions = rollout["action"].cpu().numpy()
+        render_strip(actions, path.with_name(path.stem + "_frames.png"),
+                     torch.linspace(0, len(actions), n_frames).long().tolist(), obs_dim=obs_dim)
