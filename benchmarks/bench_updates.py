@@ -12,7 +12,7 @@ each method gets >= --seconds in total; the reported rate is the median over its
 ratio is the median of the per-round ratios.
 
     python benchmarks/bench_updates.py [--seconds 3] [--fetch] [--sequential] [--compile]
-    python benchmarks/bench_updates.py --device cuda --compile --cudagraphs --fetch   # eager/compiled/graph
+    python benchmarks/bench_updates.py --device cuda --compile --cudagraphs --bf16 --fetch   # eager/compiled/graph/bf16
 """
 from __future__ import annotations
 
@@ -138,7 +138,7 @@ def time_block(fn, seconds):
 
 
 def run_size(name, dims, hidden, seconds, sequential=False, compiled=False, B=256, device="cpu",
-             cudagraphs=False):
+             cudagraphs=False, bf16=False):
     torch.manual_seed(0)
     obs, goal, N, act = dims
     td = make_batch(B, obs, goal, N, act).to(device)
@@ -161,8 +161,14 @@ def run_size(name, dims, hidden, seconds, sequential=False, compiled=False, B=25
     if sequential:
         up_s = dcil(mode="sequential")
         methods["dcil_sequential"] = lambda: up_s.step(td)
+    if bf16:
+        from srdcil.updater import bf16_supported
+
+        print(f"bf16_native_{name}: {int(bf16_supported(device))} (1 = yes)")
+        bf16 = bf16_supported(device)  # emulated bf16 is many times slower than fp32: not timed
     for label, kw, wanted in (("compiled", {"compile": True}, compiled),
-                              ("cudagraph", {"cudagraphs": True}, cudagraphs)):
+                              ("cudagraph", {"cudagraphs": True}, cudagraphs),
+                              ("bf16", {"precision": "bf16"}, bf16)):
         if not wanted:
             continue
         up_x = dcil(**kw)
@@ -192,6 +198,9 @@ def run_size(name, dims, hidden, seconds, sequential=False, compiled=False, B=25
     if cudagraphs:
         pairs.append(("dcil_cudagraph", "plain"))
         pairs.append(("dcil_cudagraph", "dcil"))
+    if bf16:
+        pairs.append(("dcil_bf16", "plain"))
+        pairs.append(("dcil_bf16", "dcil"))
     for a, b in pairs:
         ratio = statistics.median(x / y for x, y in zip(rates[a], rates[b]))
         print(f"ratio_{a}_to_{b}_{name}: {ratio:.2f} x")
@@ -205,6 +214,8 @@ def main():
     p.add_argument("--compile", action="store_true", help="also time DCILUpdater(compile=True)")
     p.add_argument("--cudagraphs", action="store_true",
                    help="also time DCILUpdater(cudagraphs=True) (CUDA-graph capture; needs --device cuda)")
+    p.add_argument("--bf16", action="store_true",
+                   help="also time DCILUpdater(precision='bf16') (only where bf16 is native)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args()
@@ -212,7 +223,8 @@ def main():
         p.error("--cudagraphs captures CUDA graphs: use it with --device cuda")
     torch.set_num_threads(args.threads)
     print(f"torch_threads: {torch.get_num_threads()} threads")
-    kw = dict(sequential=args.sequential, compiled=args.compile, device=args.device, cudagraphs=args.cudagraphs)
+    kw = dict(sequential=args.sequential, compiled=args.compile, device=args.device, cudagraphs=args.cudagraphs,
+              bf16=args.bf16)
     run_size("dubins", (3, 2, 19, 1), (400, 300), args.seconds, **kw)
     if args.fetch:
         run_size("fetch", (268, 6, 7, 9), (512, 512, 512), args.seconds, **kw)
@@ -224,7 +236,7 @@ def plain_rate_for_recipe(cfg, seconds: float = 5.0) -> float:
     from srdcil.builders import get_variant
 
     task = make_task(cfg.env)
-    dims = (task.demo.observations.shape[-1], task.goals.goals.shape[-1], len(task.goals), int(cfg.env.action_dim))
+    dims = (task.obs_dim, task.goals.goals.shape[-1], len(task.goals), task.action_dim)
     hidden = tuple(cfg.network.hidden)
     vc = get_variant(cfg.variant).value_cloning
     torch.manual_seed(0)

@@ -151,7 +151,8 @@ def make_loss_and_updater(cfg: DictConfig, actor, qvalue, value):
                        target_clip=clip, entropy_backup=o.entropy_backup, vc_coef=o.vc_coef)
     lr_value = o.lr_critic if o.lr_value is None else o.lr_value
     updater = DCILUpdater(loss, lr_actor=o.lr_actor, lr_critic=o.lr_critic, lr_value=lr_value, tau=o.tau,
-                          mode=o.update_mode, compile=bool(cfg.compile), cudagraphs=bool(cfg.cudagraphs))
+                          mode=o.update_mode, compile=bool(cfg.compile), cudagraphs=bool(cfg.cudagraphs),
+                          precision=cfg.precision)
     return loss, updater
 
 

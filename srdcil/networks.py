@@ -202,7 +202,7 @@ class GoalConditionedMLP(nn.Module):
                 x = F.linear(x, params[offset + 2 * i], params[offset + 2 * i + 1])
             if i < n - 1:
                 x = torch.relu(x)
-        return x
+        return x.float()  # fp32 out, also under a bf16 autocast (targets and losses stay fp32)
 
     def mlp(self, x: torch.Tensor, params: Sequence[torch.Tensor] | None = None) -> torch.Tensor:
         """Run the layers on a built input ``[*B, in]`` -> ``[*B, out]`` (or ``[E, *B, out]``)."""

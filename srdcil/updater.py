@@ -5,13 +5,40 @@ parameter TensorDicts (``*_network_params`` and ``target_*_params``) and torchrl
 """
 from __future__ import annotations
 
+import contextlib
+
 import torch
 from tensordict import TensorDictBase
 from torch import nn
 
 from srdcil.objectives import DCILSACLoss
 
-__all__ = ["DCILUpdater"]
+__all__ = ["DCILUpdater", "bf16_supported", "resolve_precision"]
+
+
+def bf16_supported(device: torch.device | str = "cpu") -> bool:
+    """Whether bf16 matrix products are native here: CUDA with bf16, or a CPU with AVX512-BF16 / AMX
+    (elsewhere torch emulates bf16, many times slower than fp32)."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = set(next((ln for ln in f if ln.startswith("flags")), "").split())
+    except OSError:
+        return False
+    return bool({"avx512_bf16", "amx_bf16"} & flags)
+
+
+def resolve_precision(precision: str, device) -> str:
+    """``fp32`` or ``bf16``; ``bf16`` where it is not native falls back to ``fp32`` with a message."""
+    if precision not in ("fp32", "bf16"):
+        raise ValueError(f"precision must be 'fp32' or 'bf16', got {precision!r}")
+    if precision == "bf16" and not bf16_supported(device):
+        print(f"[srdcil] precision=bf16: this {torch.device(device).type} has no native bf16 matrix units "
+              "(no AVX512-BF16 / AMX, or a CUDA device without bf16); using fp32")
+        return "fp32"
+    return precision
 
 
 class DCILUpdater:
@@ -49,6 +76,7 @@ class DCILUpdater:
         cudagraphs: bool = False,
         updater=None,
         fused: bool | None = None,
+        precision: str = "fp32",
     ):
         from torchrl.objectives import SoftUpdate
 
@@ -56,9 +84,14 @@ class DCILUpdater:
             raise ValueError(f"DCILUpdater: mode must be 'joint' or 'sequential', got {mode!r}")
         self.loss = loss
         self.mode = mode
+        device = loss.log_alpha.device
+        self.precision = resolve_precision(precision, device)
+        # bf16: autocast the forward passes only; weights, Adam state, targets and losses stay fp32
+        # (the networks return fp32, so targets and losses are computed in fp32)
+        self._autocast = (torch.autocast(device.type, dtype=torch.bfloat16) if self.precision == "bf16"
+                          else contextlib.nullcontext())
         self.tau = float(tau)
         self.target_updater = updater if updater is not None else SoftUpdate(loss, tau=tau)
-        device = loss.log_alpha.device
         use_cg = bool(cudagraphs) and device.type == "cuda"
 
         def leaves(td):
@@ -143,7 +176,8 @@ class DCILUpdater:
             self.target_updater.step()
 
     def _step_joint(self, batch: TensorDictBase) -> TensorDictBase:
-        out = self.loss(batch)
+        with self._autocast:
+            out = self.loss(batch)
         total = sum(v for k, v in out.items() if k.startswith("loss_"))
         total.backward()
         opt = self.optimizers[0]
@@ -154,12 +188,14 @@ class DCILUpdater:
 
     def _step_sequential(self, batch: TensorDictBase) -> TensorDictBase:
         crit_opt, act_opt = self.optimizers
-        c = self.loss.critic_loss(batch)
+        with self._autocast:
+            c = self.loss.critic_loss(batch)
         sum(v for k, v in c.items() if k.startswith("loss_")).backward()
         crit_opt.step()
         crit_opt.zero_grad(set_to_none=True)
         self._polyak()
-        a = self.loss.actor_loss(batch)
+        with self._autocast:
+            a = self.loss.actor_loss(batch)
         sum(v for k, v in a.items() if k.startswith("loss_")).backward()
         act_opt.step()
         act_opt.zero_grad(set_to_none=True)

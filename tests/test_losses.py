@@ -359,3 +359,38 @@ def test_value_loss_is_one_mean_over_the_mixed_batch_by_hand():
     # the sum is the plain MSE over all 5 rows, each row with its own target
     all_sq = torch.cat([sq_train, sq_demo.reshape(1)])
     torch.testing.assert_close(out["loss_value"] + out["loss_value_cloning"], all_sq.mean())
+
+
+def test_bf16_precision_falls_back_where_not_native(monkeypatch, capsys):
+    import srdcil.updater as upd
+
+    monkeypatch.setattr(upd, "bf16_supported", lambda device="cpu": False)
+    u = DCILUpdater(_small_loss(), precision="bf16")
+    assert u.precision == "fp32" and "using fp32" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="precision"):
+        DCILUpdater(_small_loss(), precision="fp16")
+
+
+@pytest.mark.parametrize("mode", ["joint", "sequential"])
+def test_bf16_update_keeps_fp32_weights_targets_and_losses(monkeypatch, mode):
+    """bf16 autocasts the forward passes only: parameters, Adam state and losses stay fp32, and the
+    losses agree with the fp32 update's to bf16 accuracy."""
+    import srdcil.updater as upd
+
+    monkeypatch.setattr(upd, "bf16_supported", lambda device="cpu": True)
+    td = _random_batch(B=64)
+    outs = {}
+    for prec in ("fp32", "bf16"):
+        loss = _small_loss(with_value=True)
+        loss._sample_noise = _row_noise
+        u = DCILUpdater(loss, precision=prec, mode=mode)
+        assert u.precision == prec
+        out = u.step(td.clone())
+        outs[prec] = out
+        assert all(v.dtype == torch.float32 for v in out.values())
+        assert all(p.dtype == torch.float32 for p in loss.parameters())
+        for st in u.optimizers[0].state.values():
+            assert st["exp_avg"].dtype == torch.float32
+    for k in ("loss_qvalue", "loss_actor", "loss_value"):
+        torch.testing.assert_close(outs["bf16"][k], outs["fp32"][k], rtol=0.1, atol=0.02)
+        assert not torch.equal(outs["bf16"][k], outs["fp32"][k]) or k == "loss_actor"  # bf16 did run
