@@ -54,7 +54,7 @@ from torchrl.envs.transforms import Transform
 
 from srdcil.rule import goal_success
 
-__all__ = ["GoalSequenceTransform"]
+__all__ = ["GoalSequenceTransform", "find_goal_transform"]
 
 Critic = Callable[[TensorDictBase], torch.Tensor]
 
@@ -489,3 +489,23 @@ class GoalSequenceTransform(Transform):
             f"max_steps_per_goal={self.max_steps_per_goal}, ags={self.ags}, ags_k={self.ags_k}, "
             f"learn_thresholds={self.learn_thresholds})"
         )
+
+
+def find_goal_transform(env) -> GoalSequenceTransform:
+    """The :class:`GoalSequenceTransform` of a ``TransformedEnv`` (searched through nested
+    ``Compose`` and ``TransformedEnv`` layers); ``LookupError`` if it has none."""
+    from torchrl.envs.transforms import Compose, TransformedEnv
+
+    def walk(t):
+        if isinstance(t, GoalSequenceTransform):
+            yield t
+        elif isinstance(t, Compose):
+            for sub in t.transforms:
+                yield from walk(sub)
+
+    e = env
+    while isinstance(e, TransformedEnv):
+        for t in walk(e.transform):
+            return t
+        e = e.base_env
+    raise LookupError(f"{type(env).__name__} has no GoalSequenceTransform")
