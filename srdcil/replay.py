@@ -600,7 +600,8 @@ class MixedReplay(ReplayBuffer):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a :meth:`state_dict` (also the two formats written before this class was a
         ``ReplayBuffer``). The current content is dropped."""
-        if state.get("format") != 2:
+        legacy = state.get("format") != 2
+        if legacy:
             state = _legacy_state(state)
         self.empty()
         if state["rows"] is None:
@@ -614,7 +615,9 @@ class MixedReplay(ReplayBuffer):
         rows, attempt = rows[L - keep:], state["attempt"].to(self.device)[L - keep:]
         t0 = t_end - keep
         if keep:
-            _, pos = self._write_rows(rows.transpose(0, 1), t0, "MixedReplay.load_state_dict", raw=True)
+            # rows of this format were stored through the buffer's inverse transforms already; the
+            # older formats' rows go through them now (e.g. the recipes' SelectTransform)
+            _, pos = self._write_rows(rows.transpose(0, 1), t0, "MixedReplay.load_state_dict", raw=not legacy)
             self._record(pos, t0, attempt.transpose(0, 1), rows.get(_nxt(K.achieved_goal)).transpose(0, 1))
         self._dc_t = t_end
         self._dc_att_count = state["att_count"].to(self.device).clone()

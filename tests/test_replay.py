@@ -521,15 +521,20 @@ def test_no_private_torchrl_attribute():
     assert not re.findall(r"\._(storage|sampler|writer|cursor|transform|rng|len|batch_size)\b", src)
 
 
+@pytest.mark.parametrize("select", [False, True])
 @pytest.mark.parametrize("fmt", ["compact", "torchrl_storage"])
-def test_checkpoints_of_the_packed_buffer_still_load(fmt):
+def test_checkpoints_of_the_packed_buffer_still_load(fmt, select):
     from pathlib import Path
+
+    from torchrl.envs import SelectTransform
 
     states = torch.load(Path(__file__).parent / "data" / "legacy_replay_states.pt", weights_only=False)
     s = Streams(n_envs=2, seed=11)  # the streams the fixture was written from (3 x 20 steps, ring 50)
     for _ in range(3):
         s.batch(20)
     rb = MixedReplay(GOALS, RADIUS, capacity=100, relabel_fraction=1.0, generator=torch.Generator().manual_seed(0))
+    if select:  # as the recipes build it: the old rows go through the buffer's inverse transforms
+        rb.append_transform(SelectTransform(*TRANSITION_KEYS), invert=True)
     rb.load_state_dict(states[fmt])
     assert len(rb) == 100
     b = rb.sample(1024)
