@@ -147,11 +147,23 @@ class DCILSACLoss(LossModule):
     Args:
         actor: ``ProbabilisticActor`` (TanhNormal) reading observation / goal / goal_idx
             (:func:`srdcil.networks.make_actor`).
-        qvalue: twin Q ``TensorDictModule`` (:func:`srdcil.networks.make_qvalue`), output
-            ``[*B, E, 1]``.
+        qvalue: the Q network, either
+
+            * srdcil's twin Q (:func:`srdcil.networks.make_qvalue`, core :class:`~srdcil.networks.TwinQ`,
+              output ``state_action_value`` ``[*B, E, 1]``): used as is, on the fast tensor path; or
+            * **one** Q network, as torchrl's ``SACLoss`` takes it (e.g. a ``ValueOperator``) writing
+              ``state_action_value`` ``[*B, 1]``: the loss builds ``num_qvalue_nets`` independent copies
+              (torchrl's ``convert_to_functional(expand_dim=...)``: parameters re-drawn per copy) and
+              evaluates them with ``torch.vmap``. The module you passed keeps its own (untrained)
+              parameters: read the trained critic through the loss (:meth:`target_q_value`).
+
+            Any other output shape (e.g. an ensemble module that is not ``TwinQ``) raises a
+            ``ValueError`` at the first evaluation, naming the shape expected.
         value: optional ``V(s, g, i)`` module (:func:`srdcil.networks.make_value`); selects SAC-v1.
 
     Keyword Args:
+        num_qvalue_nets (int): ensemble size built from a single Q module (default 2). With a
+            ``TwinQ`` it must be its ensemble size (or left to ``None``).
         gamma (float): discount (0.9).
         alpha (float): initial / fixed entropy temperature (1e-3).
         learn_alpha (bool): learn ``log_alpha`` (adds ``loss_alpha``). Default False (authors).
@@ -205,6 +217,7 @@ class DCILSACLoss(LossModule):
         qvalue: TensorDictModule,
         value: TensorDictModule | None = None,
         *,
+        num_qvalue_nets: int | None = None,
         gamma: float = 0.9,
         alpha: float = 1e-3,
         learn_alpha: bool = False,
@@ -217,7 +230,23 @@ class DCILSACLoss(LossModule):
     ):
         super().__init__()
         self.convert_to_functional(actor, "actor_network", create_target_params=False)
-        self.convert_to_functional(qvalue, "qvalue_network", create_target_params=True)
+        self._q_prefix, q_core = _find_core(qvalue, TwinQ)
+        if q_core is not None:
+            if num_qvalue_nets is not None and int(num_qvalue_nets) != q_core.ensemble_size:
+                raise ValueError(
+                    f"DCILSACLoss: num_qvalue_nets={num_qvalue_nets} but the TwinQ module holds "
+                    f"{q_core.ensemble_size} Q networks (build it with make_qvalue(num_qvalue_nets=...))"
+                )
+            self.num_qvalue_nets = q_core.ensemble_size
+            self.convert_to_functional(qvalue, "qvalue_network", create_target_params=True)
+        else:
+            # one Q network -> an ensemble of num_qvalue_nets copies, as torchrl's SACLoss builds it
+            self.num_qvalue_nets = 2 if num_qvalue_nets is None else int(num_qvalue_nets)
+            if self.num_qvalue_nets < 1:
+                raise ValueError(f"DCILSACLoss: num_qvalue_nets must be >= 1, got {num_qvalue_nets}")
+            self.convert_to_functional(
+                qvalue, "qvalue_network", expand_dim=self.num_qvalue_nets, create_target_params=True
+            )
         self.has_value = value is not None
         if value is not None:
             self.convert_to_functional(value, "value_network", create_target_params=True)
@@ -247,7 +276,7 @@ class DCILSACLoss(LossModule):
 
         # fast paths: our own core networks, called on tensors
         _, self._actor_core = _find_core(actor, GaussianPolicyNet)
-        self._q_prefix, self._q_core = _find_core(qvalue, TwinQ)
+        self._q_core = q_core
         if value is not None:
             self._v_prefix, v_core = _find_core(value, GoalConditionedMLP)
             self._v_core = v_core if (v_core is not None and v_core.ensemble_size is None) else None
@@ -272,6 +301,8 @@ class DCILSACLoss(LossModule):
         # tensors: point the stateful modules, which the fast path calls directly, at them.
         out = super()._apply(fn, *args, **kwargs)
         for net in ("actor_network", "qvalue_network", "value_network"):
+            if net == "qvalue_network" and self.__dict__.get("_q_core") is None:
+                continue  # an ensemble built from one module: its stacked params are never put back in it
             params = self._modules.get(net + "_params")
             module = self.__dict__.get(net)
             if params is not None and module is not None:
@@ -380,9 +411,22 @@ class DCILSACLoss(LossModule):
         )
         params = {"live": self.qvalue_network_params, "detached": self.qvalue_network_params.detach(),
                   "target": self.target_qvalue_network_params}[which]
-        with params.to_module(self.qvalue_network):
-            q = self.qvalue_network(sub).get(k.state_action_value)
-        return q.movedim(-2, 0)
+        net, key = self.qvalue_network, k.state_action_value
+
+        def one_member(p, td):
+            with p.to_module(net):
+                return net(td).get(key)
+
+        q = torch.vmap(one_member, (0, None), randomness="different")(params, sub)
+        expected = (self.num_qvalue_nets, *obs.shape[:-1], 1)
+        if tuple(q.shape) != expected:
+            raise ValueError(
+                f"DCILSACLoss: the Q module wrote {key!r} of shape {tuple(q.shape[1:])} for a batch "
+                f"{tuple(obs.shape[:-1])}; expected [*B, 1] = {expected[1:]} (one Q value per row). Pass ONE "
+                f"Q network (the loss builds num_qvalue_nets={self.num_qvalue_nets} copies, as torchrl's "
+                "SACLoss), or srdcil.networks.make_qvalue for the twin Q."
+            )
+        return q
 
     def _v(self, obs, goal, idx, which: str) -> torch.Tensor:
         if self._v_core is not None:
@@ -391,7 +435,13 @@ class DCILSACLoss(LossModule):
         sub = TensorDict({k.observation: obs, k.goal: goal, k.goal_idx: idx}, batch_size=obs.shape[:-1])
         params = self.value_network_params if which == "live" else self.target_value_network_params
         with params.to_module(self.value_network):
-            return self.value_network(sub).get(k.state_value)
+            v = self.value_network(sub).get(k.state_value)
+        if tuple(v.shape) != (*obs.shape[:-1], 1):
+            raise ValueError(
+                f"DCILSACLoss: the value module wrote {k.state_value!r} of shape {tuple(v.shape)} for a "
+                f"batch {tuple(obs.shape[:-1])}; expected [*B, 1]"
+            )
+        return v
 
     # ------------------------------------------------------------------ pieces
     @property

@@ -172,9 +172,15 @@ def make_replay(task: Task, cfg: DictConfig, variant: Variant, device):
         demo_td = demo_value_states(task.demo, task.goals, cfg.optim.gamma)
     r = cfg.replay
     g = torch.Generator().manual_seed(int(cfg.seed))
-    return MixedReplay(task.goals.goals, task.goals.radius, capacity=int(r.capacity),
-                       batch_size=int(cfg.optim.batch_size), demo=demo_td, demo_fraction=r.demo_fraction,
-                       relabel_fraction=r.relabel_fraction, device=device, generator=g)
+    replay = MixedReplay(task.goals.goals, task.goals.radius, capacity=int(r.capacity),
+                         batch_size=int(cfg.optim.batch_size), demo=demo_td, demo_fraction=r.demo_fraction,
+                         relabel_fraction=r.relabel_fraction, device=device, generator=g)
+    # store only what the loss and the relabelling read (fewer entries: faster batches, smaller checkpoints)
+    from torchrl.envs import SelectTransform
+
+    from srdcil.replay import TRANSITION_KEYS
+
+    return replay.append_transform(SelectTransform(*TRANSITION_KEYS), invert=True)
 
 
 def make_collector(cfg: DictConfig, env, actor, start_frames: int, device):

@@ -106,7 +106,7 @@ def save(path: Path, state: dict) -> None:
             tmp.unlink(missing_ok=True)
         except OSError:
             pass
-        reason = e.strerror if isinstance(e, OSError) and e.strerror else str(e).splitlines()[0]
+        reason = e.strerror if isinstance(e, OSError) and e.strerror else (str(e).splitlines() or [type(e).__name__])[0]
         raise CheckpointError(f"cannot write checkpoint {path}: {reason}") from e
 
 
@@ -118,8 +118,8 @@ def load(path) -> dict:
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as e:  # noqa: BLE001 - whatever unpickling raised (EOFError, MemoryError, ...)
-        raise CheckpointError(f"{path}: not a readable checkpoint (truncated or corrupt: "
-                              f"{str(e).splitlines()[0][:120]})") from e
+        why = (str(e).splitlines() or [type(e).__name__])[0][:120]
+        raise CheckpointError(f"{path}: not a readable checkpoint (truncated or corrupt: {why})") from e
     if not isinstance(ckpt, dict) or not {"frames", "actor", "loss", "config"} <= set(ckpt):
         raise CheckpointError(f"{path}: not an srdcil checkpoint (no frames / actor / loss / config entries)")
     return ckpt

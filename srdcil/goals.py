@@ -126,8 +126,9 @@ def extract_goals(
     )
 
 
-def _demo_chain(demo: Demonstration, goal_seq: GoalSequence) -> TensorDict:
-    """Rows t = 0..T'-1 (T' = steps covered by ``goal_seq``) with goals chained by ``dcil_rule``."""
+def _demo_chain(demo: Demonstration, goal_seq: GoalSequence, drop_after_last_goal: bool = False) -> TensorDict:
+    """Rows t = 0..T'-1 (T' = steps covered by ``goal_seq``) with goals chained by ``dcil_rule``
+    (with ``drop_after_last_goal``, up to the first row that reaches the last goal)."""
     n_steps = int(goal_seq.step_goal_index.shape[0])
     if n_steps > demo.num_steps:
         raise ValueError(
@@ -160,6 +161,9 @@ def _demo_chain(demo: Demonstration, goal_seq: GoalSequence) -> TensorDict:
         dcil_rule(td, goals, goal_seq.radius)
         rows.append(td)
         goal_idx = td.get(("next", "goal_idx"))
+        if drop_after_last_goal and bool(td.get(("next", "terminated"))):
+            break
+    n_steps = len(rows)
     td = torch.stack(rows, 0)
     td.set("observation", obs[:n_steps].clone())
     td.set("achieved_goal", ag[:n_steps].clone())
@@ -183,9 +187,18 @@ def demo_returns(reward: torch.Tensor, terminated: torch.Tensor, gamma: float) -
     return v.to(torch.float32).reshape(-1, 1)
 
 
-def demo_transitions(demo: Demonstration, goal_seq: GoalSequence, gamma: float) -> TensorDict:
+def demo_transitions(demo: Demonstration, goal_seq: GoalSequence, gamma: float, *,
+                     drop_after_last_goal: bool = False) -> TensorDict:
     """Demo-Buffer rows, one per demo transition t -> t+1: ``TensorDict[T]`` (T' < T rows when
     ``goal_seq`` came from ``extract_goals(..., max_demo_steps=K)``: only the K-1 steps it covers).
+
+    Rows after the last goal is first reached. When the demo stays within the radius of the last
+    goal for several steps (the shipped Fetch demo: the object rests in the compartment for the last
+    25 of its 222 steps), every such row is a success at the last goal: reward 1, ``terminated``,
+    ``demo_return`` 1. They are kept by default: each is a valid transition of the GC-MDP (from a
+    state at the last goal, the next state is still there), so their Q / V targets are right; they
+    add weight to the chain's end in the Demo-Buffer. ``drop_after_last_goal=True`` stops the rows at
+    the first success at the last goal (where a rollout would have terminated).
 
     Root: ``observation``, ``achieved_goal``, ``goal`` (g of row t), ``goal_idx`` (int64 [1]),
     ``goal_budget`` (int64, 0), ``ags_armed`` (False), ``action``, ``is_demo`` (True),
@@ -200,7 +213,7 @@ def demo_transitions(demo: Demonstration, goal_seq: GoalSequence, gamma: float) 
             "demo_transitions: the demonstration has no actions; the Demo-Buffer needs them "
             "(use demo_value_states for Value Cloning, which needs states only)"
         )
-    td = _demo_chain(demo, goal_seq)
+    td = _demo_chain(demo, goal_seq, drop_after_last_goal)
     n = td.shape[0]
     device = td.device
     zeros_l = torch.zeros(n, 1, dtype=torch.long, device=device)
@@ -218,7 +231,8 @@ def demo_transitions(demo: Demonstration, goal_seq: GoalSequence, gamma: float) 
     return td
 
 
-def demo_value_states(demo: Demonstration, goal_seq: GoalSequence, gamma: float) -> TensorDict:
+def demo_value_states(demo: Demonstration, goal_seq: GoalSequence, gamma: float, *,
+                      drop_after_last_goal: bool = False) -> TensorDict:
     """Value-Cloning rows (states only, no actions needed): ``TensorDict[T]`` with ``observation``,
     ``goal``, ``goal_idx``, ``is_demo`` (True) and ``demo_return``.
 
@@ -229,9 +243,10 @@ def demo_value_states(demo: Demonstration, goal_seq: GoalSequence, gamma: float)
     with V = 0 after the last transition, where r_{t+1} = 1[||ag(s_{t+1}) - g_{i_t}|| <= radius],
     i_{t+1} = i_t + 1 on success at a goal that is not the last (else i_t), and terminated_{t+1}
     = success at the last goal. For a demo reaching goals at steps k_1 < ... < k_N this is
-    V_demo(s_t) = sum_{j: k_j > t} gamma^(k_j - t - 1).
+    V_demo(s_t) = sum_{j: k_j > t} gamma^(k_j - t - 1). Rows after the last goal is first reached:
+    as in :func:`demo_transitions` (kept, V_demo = 1; ``drop_after_last_goal=True`` drops them).
     """
-    td = _demo_chain(demo, goal_seq)
+    td = _demo_chain(demo, goal_seq, drop_after_last_goal)
     nxt = td.get("next")
     out = TensorDict(
         {

@@ -40,10 +40,16 @@ Builders (TorchRL modules):
 - :func:`make_qvalue` -> ``TensorDictModule`` writing ``state_action_value`` of shape ``[*B, 2, 1]``
   (member j of the twin at ``[..., j, :]``); the core :class:`TwinQ` itself returns ``[2, *B, 1]``.
 - :func:`make_value` -> ``ValueOperator`` writing ``state_value`` ``[*B, 1]``.
+
+From an env's specs (no dimension by hand): :func:`network_dims` reads the observation, goal,
+goal-index and action specs of an env holding a ``GoalSequenceTransform`` (its key names too), and
+:func:`make_actor_from_env`, :func:`make_qvalue_from_env`, :func:`make_value_from_env` build the
+same modules with the right sizes and ``in_keys``.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Sequence
 
 import torch
@@ -59,6 +65,11 @@ __all__ = [
     "make_value",
     "AUTHORS_HIDDEN_GAIN",
     "set_normalization",
+    "NetworkDims",
+    "network_dims",
+    "make_actor_from_env",
+    "make_qvalue_from_env",
+    "make_value_from_env",
 ]
 
 AUTHORS_HIDDEN_GAIN = math.sqrt(0.02)
@@ -417,3 +428,71 @@ def make_value(
     if device is not None:
         net = net.to(device)
     return ValueOperator(net, in_keys=list(in_keys), out_keys=[out_key])
+
+
+# ---------------------------------------------------------------------------------- from env specs
+@dataclass(frozen=True)
+class NetworkDims:
+    """Input / output sizes and entry names of the goal-conditioned networks, read from an env."""
+
+    obs_dim: int
+    goal_dim: int
+    num_goals: int
+    action_dim: int
+    in_keys: tuple  # (observation, goal, goal_idx) entry names
+    action_key: object = "action"
+
+
+def network_dims(env, *, observation_key="observation", action_key="action") -> NetworkDims:
+    """Sizes from the specs of ``env`` (a ``TransformedEnv`` with a ``GoalSequenceTransform``):
+    ``observation_key``'s last dim, the goal and goal-index entries the transform declares (under
+    the names it was given), the number of goals (the index spec's upper bound + 1) and the action's
+    last dim. The action spec must be bounded by [-1, 1] (the actor's TanhNormal range): put
+    ``torchrl.envs.ActionScaling()`` on an env with other bounds."""
+    from srdcil.transforms import find_goal_transform
+
+    gst = find_goal_transform(env)
+    goal_key, idx_key = gst.key("goal"), gst.key("goal_idx")
+    spec = env.observation_spec
+    for key in (observation_key, goal_key, idx_key):
+        if key not in spec.keys(True, True):
+            raise KeyError(f"network_dims: the env's observation spec has no {key!r}; entries: "
+                           f"{sorted(map(str, spec.keys(True, True)))}")
+    aspec = env.full_action_spec[action_key]
+    low = getattr(getattr(aspec, "space", None), "low", None)
+    if low is not None:
+        high = aspec.space.high
+        if not (torch.allclose(low.float(), torch.full_like(low.float(), -1.0))
+                and torch.allclose(high.float(), torch.full_like(high.float(), 1.0))):
+            raise ValueError(
+                f"network_dims: the action spec is bounded by [{low.min().item()}, {high.max().item()}], the actor "
+                "samples in [-1, 1]: append torchrl.envs.ActionScaling() to the env (it rescales [-1, 1] to the bounds)"
+            )
+    return NetworkDims(
+        obs_dim=int(spec[observation_key].shape[-1]),
+        goal_dim=int(spec[goal_key].shape[-1]),
+        num_goals=gst.num_goals,
+        action_dim=int(aspec.shape[-1]),
+        in_keys=(observation_key, goal_key, idx_key),
+        action_key=action_key,
+    )
+
+
+def make_actor_from_env(env, hidden: Sequence[int] = (400, 300), *, observation_key="observation", **kwargs):
+    """:func:`make_actor` with the sizes and ``in_keys`` of ``env`` (see :func:`network_dims`)."""
+    d = network_dims(env, observation_key=observation_key)
+    return make_actor(d.obs_dim, d.goal_dim, d.num_goals, d.action_dim, hidden, in_keys=d.in_keys, **kwargs)
+
+
+def make_qvalue_from_env(env, hidden: Sequence[int] = (400, 300), *, observation_key="observation",
+                         action_key="action", **kwargs):
+    """:func:`make_qvalue` (the twin Q) with the sizes and ``in_keys`` of ``env``."""
+    d = network_dims(env, observation_key=observation_key, action_key=action_key)
+    return make_qvalue(d.obs_dim, d.goal_dim, d.num_goals, d.action_dim, hidden,
+                       in_keys=(*d.in_keys, action_key), **kwargs)
+
+
+def make_value_from_env(env, hidden: Sequence[int] = (400, 300), *, observation_key="observation", **kwargs):
+    """:func:`make_value` (V for value cloning) with the sizes and ``in_keys`` of ``env``."""
+    d = network_dims(env, observation_key=observation_key)
+    return make_value(d.obs_dim, d.goal_dim, d.num_goals, hidden, in_keys=d.in_keys, **kwargs)

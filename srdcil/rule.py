@@ -22,6 +22,14 @@ def dcil_rule(
     *,
     achieved_goal_key=("next", "achieved_goal"),
     env_terminated_key=("next", "env_terminated"),
+    goal_key="goal",
+    goal_idx_key="goal_idx",
+    reward_key=("next", "reward"),
+    next_goal_key=("next", "goal"),
+    next_goal_idx_key=("next", "goal_idx"),
+    terminated_key=("next", "terminated"),
+    truncated_key=("next", "truncated"),
+    done_key=("next", "done"),
 ) -> TensorDictBase:
     """Recompute ``("next", reward/goal/goal_idx/terminated/done)`` in place from the goal of ``td``.
 
@@ -29,9 +37,10 @@ def dcil_rule(
     (not the last) the next goal/index are (g_{i+1}, i+1), otherwise (goal, i): the index is never
     relabelled. ``terminated`` is true for success on the last goal, or a true env termination.
     ``done`` = terminated | truncated (a timeout never cuts bootstrapping: only ``terminated`` does).
+    Every entry is named by a ``*_key`` argument (defaults: the names of ``docs/architecture.md``).
     """
-    goal = td.get("goal")
-    idx = td.get("goal_idx")
+    goal = td.get(goal_key)
+    idx = td.get(goal_idx_key)
     n = goals.shape[0]
     r = goal_success(td.get(achieved_goal_key), goal, radius)
     last = idx >= n - 1
@@ -43,10 +52,10 @@ def dcil_rule(
     terminated = r & last
     if env_term is not None:
         terminated = terminated | env_term
-    td.set(("next", "reward"), r.to(torch.float32))
-    td.set(("next", "goal"), next_goal)
-    td.set(("next", "goal_idx"), next_idx)
-    td.set(("next", "terminated"), terminated)
-    truncated = td.get(("next", "truncated"), None)
-    td.set(("next", "done"), terminated if truncated is None else terminated | truncated)
+    td.set(reward_key, r.to(torch.float32))
+    td.set(next_goal_key, next_goal)
+    td.set(next_goal_idx_key, next_idx)
+    td.set(terminated_key, terminated)
+    truncated = td.get(truncated_key, None)
+    td.set(done_key, terminated if truncated is None else terminated | truncated)
     return td

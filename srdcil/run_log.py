@@ -39,6 +39,8 @@ class RunLog:
         self.metrics = self.dir / "metrics.jsonl"
         self._write(self.dir, lambda p: p.mkdir(parents=True, exist_ok=True))
         self._write(self.dir / "config.yaml", lambda p: OmegaConf.save(cfg, p))
+        if resumed_at is None and self.metrics.exists():  # a fresh start: a stale log would be mixed in
+            self._write(self.metrics, lambda p: p.unlink())
         if resumed_at is not None and self.metrics.exists():
             lines = [ln for ln in self.metrics.read_text().splitlines() if ln.strip()]
             keep = [ln for ln in lines if json.loads(ln).get("env_steps", 0) <= resumed_at]

@@ -7,6 +7,7 @@ and logged by :mod:`srdcil.run_log`. The configuration is the typed schema of
 """
 from __future__ import annotations
 
+import json
 import signal
 import threading
 import time
@@ -219,6 +220,10 @@ def _load_resume(cfg: DictConfig, run_dir: Path, task) -> tuple[dict | None, Pat
     checkpoint comes back with ``finished`` set when there is nothing left to do."""
     resume = _resume_path(cfg, run_dir)
     if resume is None:
+        done = run_dir / "result.json"
+        if cfg.resume == "auto" and done.exists():  # a finished run kept without its checkpoint
+            print(f"[srdcil] {done} exists (a finished run): nothing to do")
+            return {"finished": True, "result": json.loads(done.read_text())}, None
         return None, None
     saved = ckpt_io.load(resume)
     ckpt_io.check_compatible(saved, cfg, task.goals.goals, resume)

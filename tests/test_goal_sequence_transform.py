@@ -12,55 +12,7 @@ from torchrl.envs.utils import check_env_specs
 
 from srdcil.transforms import GoalSequenceTransform
 
-
-class PointEnv(EnvBase):
-    """Batched point in R^D: ``observation`` = ``achieved_goal`` = position, action = velocity.
-
-    The state lives in the tensordict (stateless env), start state is the origin. If
-    ``terminate_below`` is set, the env terminates when the first coordinate gets below it.
-    """
-
-    def __init__(self, dim: int = 1, batch_size=(), terminate_below: float | None = None):
-        super().__init__(batch_size=torch.Size(batch_size))
-        self.dim = dim
-        self.terminate_below = terminate_below
-        bs = self.batch_size
-        self.observation_spec = Composite(
-            observation=Unbounded(shape=(*bs, dim)),
-            achieved_goal=Unbounded(shape=(*bs, dim)),
-            shape=bs,
-        )
-        self.action_spec = Bounded(-1.0, 1.0, shape=(*bs, dim))
-        self.reward_spec = Unbounded(shape=(*bs, 1))
-        self.done_spec = Categorical(2, shape=(*bs, 1), dtype=torch.bool)
-
-    def _reset(self, tensordict):
-        pos = torch.zeros(*self.batch_size, self.dim)
-        done = torch.zeros(*self.batch_size, 1, dtype=torch.bool)
-        return TensorDict(
-            {"observation": pos, "achieved_goal": pos.clone(), "done": done, "terminated": done.clone()},
-            batch_size=self.batch_size,
-        )
-
-    def _step(self, tensordict):
-        pos = tensordict["observation"] + tensordict["action"]
-        if self.terminate_below is None:
-            term = torch.zeros(*self.batch_size, 1, dtype=torch.bool)
-        else:
-            term = pos[..., :1] < self.terminate_below
-        return TensorDict(
-            {
-                "observation": pos,
-                "achieved_goal": pos.clone(),
-                "reward": torch.full((*self.batch_size, 1), -7.0),  # must be overwritten
-                "done": term,
-                "terminated": term.clone(),
-            },
-            batch_size=self.batch_size,
-        )
-
-    def _set_seed(self, seed):
-        return seed
+from point_env import PointEnv
 
 
 GOALS_1D = torch.tensor([[1.0], [2.0], [3.0]])
@@ -456,3 +408,114 @@ def test_tensordict_module_critic_and_collector():
     for batch in col:
         assert batch["next", "goal_idx"].max() <= 2 and batch.numel() == 12
     col.shutdown()
+
+
+# --------------------------------------------------------------------------- composing with other torchrl transforms
+
+GOALS_2D = torch.tensor([[0.5, 0.0], [1.0, 0.0], [1.0, 0.5]])
+# a scripted "demonstration": 0.25 per step right, then up; reaches the 3 goals at steps 1, 3, 5
+DEMO_ACTIONS_2D = torch.tensor([[0.25, 0.0]] * 4 + [[0.0, 0.25]] * 2)
+
+
+def _replay_demo(env):
+    data, _ = run(env, DEMO_ACTIONS_2D)
+    return data
+
+
+def test_a_later_transform_rewriting_goal_in_place_does_not_change_success():
+    # Before: the transform read g_i back from the tensordict, so a later ObservationNorm on "goal"
+    # made it compare the achieved goal with the *normalised* goal: 0 successes instead of 3.
+    from torchrl.envs import Compose, ObservationNorm
+
+    plain = _replay_demo(make_env(goals=GOALS_2D, dim=2))
+    assert int(plain["next", "success"].sum()) == 3
+    env = TransformedEnv(
+        PointEnv(dim=2),
+        Compose(GoalSequenceTransform(GOALS_2D, 0.1, 10),
+                ObservationNorm(loc=torch.tensor(-3.0), scale=torch.tensor(0.5), in_keys=["goal"])),
+    )
+    check_env_specs(env)
+    data = _replay_demo(env)
+    assert int(data["next", "success"].sum()) == 3
+    assert bool(data["next", "terminated"][-1]) and flat(data["next", "goal_idx"][-1]) == [2]
+    assert torch.allclose(data["goal"], GOALS_2D[data["goal_idx"].squeeze(-1)] * 0.5 - 3.0)  # rewritten in place
+
+
+def test_cat_tensors_deleting_goal_after_the_transform():
+    # Before: TypeError: unsupported operand type(s) for -: 'Tensor' and 'NoneType'
+    from torchrl.envs import CatTensors, Compose
+
+    env = TransformedEnv(
+        PointEnv(dim=2),
+        Compose(GoalSequenceTransform(GOALS_2D, 0.1, 10),
+                CatTensors(["achieved_goal", "goal"], out_key="obs_goal", del_keys=True)),
+    )
+    check_env_specs(env)
+    data = _replay_demo(env)
+    assert "goal" not in data.keys() and data["obs_goal"].shape == (6, 4)
+    assert int(data["next", "success"].sum()) == 3
+
+
+def test_a_later_transform_deleting_the_goal_index_is_a_clear_error():
+    from torchrl.envs import CatTensors, Compose
+
+    env = TransformedEnv(
+        PointEnv(dim=2),
+        Compose(GoalSequenceTransform(GOALS_2D, 0.1, 10),
+                CatTensors(["goal", "goal_idx"], out_key="g_and_i", del_keys=True)),
+    )
+    td = env.reset()
+    td["action"] = torch.zeros(2)
+    with pytest.raises(KeyError, match="'goal_idx'.*del_keys"):
+        env.step(td)
+
+
+def test_keys_are_configurable_in_keys_out_keys_and_set_keys():
+    from torchrl.envs import Compose, RenameTransform
+
+    base = TransformedEnv(PointEnv(dim=2), RenameTransform(["achieved_goal"], ["tip"], create_copy=False))
+    t = GoalSequenceTransform(GOALS_2D, 0.1, 10, in_keys=["tip"]).set_keys(goal="desired_goal", goal_idx="gi")
+    assert t.in_keys == ["tip"] and t.out_keys[:2] == ["desired_goal", "gi"]
+    env = TransformedEnv(base, t)
+    check_env_specs(env)
+    spec = env.observation_spec
+    assert "desired_goal" in spec.keys() and "gi" in spec.keys() and "goal" not in spec.keys()
+    data = _replay_demo(env)
+    assert int(data["next", "success"].sum()) == 3 and flat(data["next", "gi"][-1]) == [2]
+    with pytest.raises(RuntimeError, match="before"):
+        t.set_keys(goal="g2")  # already in an env
+    # out_keys by position, as torchrl transforms take them
+    t2 = GoalSequenceTransform(GOALS_2D, 0.1, 10, out_keys=["g", "i", "b", "armed", "ok", "term"])
+    assert t2.key("goal") == "g" and t2.key("success") == "ok"
+    env2 = TransformedEnv(PointEnv(dim=2), t2)
+    check_env_specs(env2)
+    assert int(_replay_demo(env2)["next", "ok"].sum()) == 3
+    with pytest.raises(ValueError, match="out_keys must name"):
+        GoalSequenceTransform(GOALS_2D, 0.1, 10, out_keys=["g"])
+    with pytest.raises(ValueError, match="unknown name"):
+        GoalSequenceTransform(GOALS_2D, 0.1, 10).set_keys(not_a_name="x")
+    with pytest.raises(KeyError, match="in_keys"):  # the achieved goal is not where the transform looks
+        _replay_demo(TransformedEnv(base, GoalSequenceTransform(GOALS_2D, 0.1, 10)))
+
+
+def test_the_library_twin_q_module_is_an_ags_critic():
+    # Before: RuntimeError: shape '[4, 1]' is invalid for input of size 8 (the twin dim was not reduced)
+    from srdcil.networks import make_qvalue
+
+    torch.manual_seed(0)
+    q = make_qvalue(2, 2, 3, 2, hidden=(8,))
+    env = TransformedEnv(PointEnv(dim=2, batch_size=(4,)), GoalSequenceTransform(GOALS_2D, 0.1, 10, ags=True, critic=q))
+    check_env_specs(env)
+    td = env.reset()
+    td["action"] = torch.rand(4, 2) - 0.5
+    expected = q(td.copy())["state_action_value"].amin(-2)  # Q̄ = min over the twin
+    out = env.step(td)
+    assert torch.allclose(out["next", "ags_q_hist"][:, -1:], expected)
+    assert "state_action_value" not in out.keys()
+
+    def bad(td):
+        return torch.zeros(*td.batch_size, 3)
+
+    env.transform.set_critic(bad)
+    with pytest.raises(ValueError, match=r"expected \[\*B, 1\]"):
+        env.step(env.reset().set("action", torch.zeros(4, 2)))

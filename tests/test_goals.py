@@ -137,3 +137,19 @@ def test_early_success_switches_once():
     td = demo_transitions(d, g, gamma=0.9)
     assert td["next", "reward"].squeeze(-1).tolist() == [0, 0, 1, 0, 0, 0, 1]
     assert td["goal_idx"].squeeze(-1).tolist() == [0, 0, 0, 1, 1, 1, 1]
+
+
+def test_rows_after_the_last_goal_are_kept_by_default_and_can_be_dropped():
+    # the demo rests on its final state for 3 more steps: those rows are successes at the last goal
+    d = _line([0.25 * k for k in range(5)] + [1.0, 1.0, 1.0])
+    g = extract_goals(d, eps=0.5)
+    assert g.demo_indices.tolist() == [3, 7]
+    td = demo_transitions(d, g, gamma=0.9)
+    assert td.shape[0] == 7
+    term = td["next", "terminated"].squeeze(-1)
+    assert term.tolist() == [False, False, False, True, True, True, True]  # valid GC-MDP transitions
+    assert (td["demo_return"][term] == 1.0).all()
+    short = demo_transitions(d, g, gamma=0.9, drop_after_last_goal=True)
+    assert short.shape[0] == 4 and bool(short["next", "terminated"][-1])
+    assert torch.equal(short["demo_return"], td["demo_return"][:4])
+    assert demo_value_states(d, g, gamma=0.9, drop_after_last_goal=True).shape[0] == 4

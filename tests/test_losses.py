@@ -394,3 +394,74 @@ def test_bf16_update_keeps_fp32_weights_targets_and_losses(monkeypatch, mode):
     for k in ("loss_qvalue", "loss_actor", "loss_value"):
         torch.testing.assert_close(outs["bf16"][k], outs["fp32"][k], rtol=0.1, atol=0.02)
         assert not torch.equal(outs["bf16"][k], outs["fp32"][k]) or k == "loss_actor"  # bf16 did run
+
+
+# --------------------------------------------------------------------------- one Q module (torchrl's SACLoss contract)
+
+
+class _PlainQ(torch.nn.Module):
+    """A user's Q network: one output per row, no ensemble (what torchrl's SACLoss takes)."""
+
+    def __init__(self):
+        super().__init__()
+        self.net = torch.nn.Sequential(torch.nn.Linear(OBS + GOAL + 1 + ACT, 16), torch.nn.ReLU(), torch.nn.Linear(16, 1))
+
+    def forward(self, observation, goal, goal_idx, action):
+        return self.net(torch.cat([observation, goal, goal_idx.float(), action], -1))
+
+
+def _plain_q_module(cls=_PlainQ):
+    from torchrl.modules import ValueOperator
+
+    return ValueOperator(cls(), in_keys=["observation", "goal", "goal_idx", "action"])
+
+
+@pytest.mark.parametrize("n", [2, 3])
+def test_single_q_module_is_built_into_an_ensemble_as_torchrl_sac_does(n):
+    # Before: a [*B, 1] Q output was read as an ensemble of B members (target_q_value of shape (1,)).
+    torch.manual_seed(0)
+    actor = make_actor(OBS, GOAL, N, ACT, hidden=(8,))
+    loss = DCILSACLoss(actor, _plain_q_module(), num_qvalue_nets=n)
+    td = _random_batch(B=7)
+    assert loss.target_q_value(td).shape == (7, 1)
+    q_all = loss._q_all(td["observation"], td["goal"], td["goal_idx"], td["action"], "live")
+    assert q_all.shape == (n, 7, 1)
+    assert not torch.allclose(q_all[0], q_all[1])  # independent members, not one network twice
+    assert loss.compute_target(td).shape == (7, 1)
+    # min over the members, as in the twin-Q case
+    assert torch.allclose(
+        loss.target_q_value(td),
+        loss._q_all(td["observation"], td["goal"], td["goal_idx"], td["action"], "target").amin(0),
+    )
+    # trains: every member moves, the loss on a fixed batch goes down
+    upd = DCILUpdater(loss, lr_critic=1e-2, mode="sequential")
+    w0 = loss.qvalue_network_params.clone()
+    first = float(upd.step(td)["loss_qvalue"])
+    for _ in range(50):
+        last = float(upd.step(td)["loss_qvalue"])
+    assert last < first
+    for k, v in loss.qvalue_network_params.items(True, True):
+        assert v.shape[0] == n
+        assert all(not torch.equal(v[j], w0[k][j]) for j in range(n))
+
+
+def test_ensemble_q_module_that_is_not_twinq_is_refused_with_the_shape_expected():
+    class EnsembleQ(torch.nn.Module):  # [*B, 2, 1] from a module the loss does not know
+        def __init__(self):
+            super().__init__()
+            self.lin = torch.nn.Linear(OBS, 2)
+
+        def forward(self, observation, goal, goal_idx, action):
+            return self.lin(observation).unsqueeze(-1)
+
+    loss = DCILSACLoss(make_actor(OBS, GOAL, N, ACT, hidden=(8,)), _plain_q_module(EnsembleQ))
+    with pytest.raises(ValueError, match=r"expected \[\*B, 1\]"):
+        loss(_random_batch(B=5))
+
+
+def test_num_qvalue_nets_must_match_the_twin_q():
+    actor = make_actor(OBS, GOAL, N, ACT, hidden=(8,))
+    with pytest.raises(ValueError, match="num_qvalue_nets"):
+        DCILSACLoss(actor, make_qvalue(OBS, GOAL, N, ACT, hidden=(8,)), num_qvalue_nets=3)
+    loss = DCILSACLoss(actor, make_qvalue(OBS, GOAL, N, ACT, hidden=(8,), num_qvalue_nets=3))
+    assert loss.num_qvalue_nets == 3

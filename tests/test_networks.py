@@ -1,7 +1,9 @@
 """Goal-conditioned networks: input construction, normalisation, twin-Q fusion, actor modes, init."""
 import math
 
+import pytest
 import torch
+from torchrl.data import Bounded
 from tensordict import TensorDict
 from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -208,3 +210,32 @@ def test_actor_in_a_collector_and_deterministic_rollout():
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         roll = env.rollout(5, actor)
     torch.testing.assert_close(roll["action"], torch.tanh(roll["loc"]))
+
+
+def test_builders_from_the_env_specs():
+    from torchrl.envs import ActionScaling, TransformedEnv
+
+    from point_env import PointEnv
+    from srdcil.networks import make_actor_from_env, make_qvalue_from_env, make_value_from_env, network_dims
+    from srdcil.transforms import GoalSequenceTransform
+
+    goals = torch.zeros(4, 3)
+    gst = GoalSequenceTransform(goals, 0.1, 5).set_keys(goal="desired_goal")
+    env = TransformedEnv(PointEnv(dim=3, batch_size=(2,)), gst)
+    d = network_dims(env)
+    assert (d.obs_dim, d.goal_dim, d.num_goals, d.action_dim) == (3, 3, 4, 3)
+    assert d.in_keys == ("observation", "desired_goal", "goal_idx")
+    actor, q, v = make_actor_from_env(env, (8,)), make_qvalue_from_env(env, (8,)), make_value_from_env(env, (8,))
+    td = env.rollout(3, actor)
+    assert q(td)["state_action_value"].shape == (2, 3, 2, 1) and v(td)["state_value"].shape == (2, 3, 1)
+
+    class WideActions(PointEnv):
+        def __init__(self):
+            super().__init__(dim=2)
+            self.action_spec = Bounded(-2.0, 2.0, shape=(2,))
+
+    wide = TransformedEnv(WideActions(), GoalSequenceTransform(torch.zeros(2, 2), 0.1, 5))
+    with pytest.raises(ValueError, match="ActionScaling"):
+        network_dims(wide)
+    wide.append_transform(ActionScaling())
+    assert network_dims(wide).action_dim == 2

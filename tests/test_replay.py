@@ -63,8 +63,8 @@ class Streams:
                 "goal_idx": goal_idx.unsqueeze(-1),
                 "action": torch.zeros(n, T, 2),
                 "collector": {"traj_ids": torch.zeros(n, T, dtype=torch.long)},
-                "next": {
-                    "observation": torch.stack([env.float(), t.float() + 1, attempt.float()], -1),
+                "next": {  # the observation of step t+1 (its attempt id: the next row's)
+                    "observation": torch.stack([env.float(), t.float() + 1, (attempt + ends).float()], -1),
                     "achieved_goal": ag_code(env, t),
                     "goal": GOALS[next_idx],
                     "goal_idx": next_idx.unsqueeze(-1),
@@ -143,7 +143,8 @@ def test_exact_split_keys_and_shuffle():
         b = rb.sample(256)
         assert b.batch_size == torch.Size([256])
         assert int(b["is_demo"].sum()) == 51
-        assert set(b.keys(True, True)) == set(TRANSITION_KEYS)
+        # every entry of the data is kept (here the collector's traj ids and the root achieved goal)
+        assert set(b.keys(True, True)) == set(TRANSITION_KEYS) | {("collector", "traj_ids"), "achieved_goal"}
         where = b["is_demo"].squeeze(-1).nonzero().squeeze(-1)
         blocks += int(where[-1] - where[0] == 50)  # demo rows in one contiguous block
     assert blocks == 0  # rows are permuted
@@ -285,14 +286,14 @@ def test_capacity_bound_and_wraparound_never_mixes_attempts(T):
                      generator=torch.Generator().manual_seed(9))
     for k in range(12):
         rb.extend(s.batch(T))
-        assert len(rb) <= 31
+        assert len(rb) <= 32  # torchrl's 2-D storage: ceil(31 / 2) = 16 steps per env stream
         b = rb.sample(256)
         newest = s.t - 1
         train = b[~b["is_demo"].squeeze(-1)]
         t = train["observation"][:, 1]
-        assert (t > newest - 15).all() and (t <= newest).all()  # only the newest 15 steps per env
-        check_relabelled_rows(b, s, newest_t=newest, ring=15)
-    assert len(rb) == 30
+        assert (t > newest - 16).all() and (t <= newest).all()  # only the newest 16 steps per env
+        check_relabelled_rows(b, s, newest_t=newest, ring=16)
+    assert len(rb) == 32
 
 
 def test_value_states_mode():
@@ -343,14 +344,15 @@ def test_state_dict_roundtrip_after_the_ring_wrapped_keeps_only_filled_rows():
     for _ in range(3):  # 60 steps per env stream > ring of 50: the oldest were overwritten
         rb.extend(s.batch(20))
     state = rb.state_dict()
-    assert state["train"]["rows"].shape[0] == 100
+    assert state["rows"].shape == (50, 2)  # the ring of 50 steps of each of the 2 streams, oldest first
+    assert state["rows"]["observation"][:, 0, 1].tolist() == list(range(10, 60))
     rb2 = MixedReplay(GOALS, RADIUS, capacity=100, relabel_fraction=1.0)
     rb2.load_state_dict(state)
     rb2.extend(s.batch(20))
     check_relabelled_rows(rb2.sample(1024), s, newest_t=79, ring=50)
     big = MixedReplay(GOALS, RADIUS, capacity=1_000_000)
     big.extend(Streams().batch(20))
-    assert big.state_dict()["train"]["rows"].shape[0] == 40  # not the million-row capacity
+    assert big.state_dict()["rows"].shape == (20, 2)  # not the million-row capacity
 
 
 def test_sample_speed():
@@ -366,3 +368,177 @@ def test_sample_speed():
         rb.sample(256)
     dt = (time.perf_counter() - t0) / n
     assert dt < 0.01, f"sample(256) took {dt * 1e3:.2f} ms"
+
+
+# --------------------------------------------------------------------------- a torchrl ReplayBuffer, torchrl keys
+
+
+def _collect(n_envs=3, frames=60, seed=0, ag_key="achieved_goal", extra=()):
+    """A real Collector batch [n_envs, T] of a point env with the goal transform (random actions)."""
+    from torchrl.collectors import Collector
+    from torchrl.envs import Compose, RenameTransform, TransformedEnv
+
+    from point_env import PointEnv
+    from srdcil.transforms import GoalSequenceTransform
+
+    torch.manual_seed(seed)
+    goals = torch.tensor([[0.3, 0.0], [0.6, 0.0], [0.6, 0.3]])
+    ts = [] if ag_key == "achieved_goal" else [RenameTransform(["achieved_goal"], [ag_key], create_copy=False)]
+    env = TransformedEnv(
+        PointEnv(dim=2, batch_size=(n_envs,)),
+        Compose(*ts, GoalSequenceTransform(goals, 0.15, 6, in_keys=[ag_key]), *extra),  # 20 steps: not a multiple of 6
+    )
+    col = Collector(env, None, frames_per_batch=frames, total_frames=frames)
+    data = next(iter(col))
+    col.shutdown()
+    return goals, data
+
+
+def test_flattened_collector_batch_is_refused():
+    # Before: rb.extend(batch.reshape(-1)) was taken as one long stream: goals were relabelled with
+    # achieved goals of other envs' trajectories.
+    goals, data = _collect()
+    assert data.batch_size == (3, 20)
+    rb = MixedReplay(goals, 0.15, capacity=1000, relabel_fraction=1.0, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match=r"flattened batch \(batch.reshape\(-1\)\)"):
+        rb.extend(data.reshape(-1))
+    with pytest.raises(ValueError, match=r"\[n_envs, T\] \(time last\)"):
+        rb.extend(data.transpose(0, 1))  # time first
+    assert len(rb) == 0
+    rb.extend(data)  # the collector's own layout
+    with pytest.raises(ValueError, match="1 env streams, earlier batches had 3"):
+        rb.extend(data[1])  # one env's steps [T]: one stream, not the 3 this buffer holds
+    # every relabelled goal is the achieved goal of a later step of the same trajectory and attempt
+    b = MixedReplay(goals, 0.15, capacity=1000, relabel_fraction=1.0, generator=torch.Generator().manual_seed(1))
+    b.extend(data)
+    batch, info = b.sample(512, return_info=True)
+    slot, env = info["index"]
+    src_ok = 0
+    for row, (s, e) in enumerate(zip(slot.tolist(), env.tolist())):
+        traj = data["collector", "traj_ids"][e]
+        later = (traj == traj[s]) & (torch.arange(20) >= s)
+        ags = data["next", "achieved_goal"][e][later]
+        src_ok += int((ags == batch["goal"][row]).all(-1).any())
+    assert src_ok == 512
+
+
+def test_a_single_stream_buffer_refuses_a_flattened_batch_without_traj_ids():
+    goals, data = _collect()
+    rb = MixedReplay(goals, 0.15, capacity=1000)
+    with pytest.raises(ValueError, match="flattened"):  # caught by the observation chain alone
+        rb.extend(data.exclude("collector").reshape(-1))
+
+
+def test_a_stream_that_does_not_continue_closes_its_open_attempt():
+    s = Streams(n_envs=2, p_end=0.0)  # one endless attempt per env
+    rb = MixedReplay(GOALS, RADIUS, capacity=1000, relabel_fraction=1.0, generator=torch.Generator().manual_seed(2))
+    rb.extend(s.batch(5))
+    s.t += 100  # the streams jump (e.g. a new collector after a resume): not the same attempt any more
+    rb.extend(s.batch(5))
+    b = rb.sample(2048)
+    t = b["observation"][:, 1].long()
+    _, src_t = decode_source(b["goal"])
+    assert ((t < 5) == (src_t < 5)).all()  # no goal crosses the jump
+    assert (src_t[t < 5] == 4).any() and (src_t[t >= 100] == 109).any()
+
+
+def test_achieved_goal_key_of_the_transform_and_set_keys():
+    # Before: with achieved_goal_key="tip" on the transform, extend raised KeyError.
+    goals, data = _collect(ag_key="tip")
+    assert "achieved_goal" not in data["next"].keys()
+    rb = MixedReplay(goals, 0.15, capacity=1000, relabel_fraction=1.0, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(KeyError, match="set_keys"):
+        rb.extend(data)
+    rb.set_keys(achieved_goal="tip")
+    rb.extend(data)
+    b = rb.sample(256)
+    tips = data["next", "tip"].reshape(-1, 2)
+    assert all(bool((tips == g).all(-1).any()) for g in b["goal"])  # relabelled from "tip"
+    with pytest.raises(RuntimeError, match="before the first extend"):
+        rb.set_keys(goal="g")
+    with pytest.raises(ValueError, match="unknown name"):
+        MixedReplay(goals, 0.15, capacity=10).set_keys(obs="x")
+
+
+def test_extra_keys_are_kept_and_the_loss_keys_reach_the_batch():
+    # Before: only a fixed list of entries was stored: after loss.set_keys(observation="obs_goal"),
+    # sampled batches had no "obs_goal".
+    from torchrl.envs import CatTensors
+
+    goals, data = _collect(extra=[CatTensors(["observation", "goal"], out_key="obs_goal", del_keys=False)])
+    rb = MixedReplay(goals, 0.15, capacity=1000, generator=torch.Generator().manual_seed(0))
+    rb.extend(data)
+    b = rb.sample(64)
+    assert b["obs_goal"].shape == (64, 4) and b["next", "obs_goal"].shape == (64, 4)
+    assert ("collector", "traj_ids") in b.keys(True, True) and "goal_budget" in b.keys()
+    # a demo must carry the entries the buffer reads under the names it was given
+    demo = data[0].exclude("obs_goal", ("next", "obs_goal"))
+    rb2 = MixedReplay(goals, 0.15, capacity=1000, demo=demo, generator=torch.Generator().manual_seed(0))
+    rb2.set_keys(observation="obs_goal")
+    rb2.extend(data)
+    with pytest.raises(KeyError, match="obs_goal"):
+        rb2.sample(64)
+    # entries a demo lacks and the buffer does not read are zero fillers at demo rows
+    rb3 = MixedReplay(goals, 0.15, capacity=1000, demo=demo, generator=torch.Generator().manual_seed(0))
+    rb3.extend(data)
+    b3 = rb3.sample(100)
+    d = b3["is_demo"].squeeze(-1)
+    assert int(d.sum()) == 20 and (b3["obs_goal"][d] == 0).all() and (b3["obs_goal"][~d] != 0).any()
+
+
+def test_it_is_a_torchrl_replay_buffer_with_swappable_parts():
+    from torchrl.data import LazyMemmapStorage, ListStorage, ReplayBuffer
+    from torchrl.envs import ExcludeTransform, SelectTransform
+
+    assert issubclass(MixedReplay, ReplayBuffer)
+    s = Streams(n_envs=2)
+    data = s.batch(30)
+    rb = MixedReplay(GOALS, RADIUS, storage=LazyMemmapStorage(200, ndim=2), relabel_fraction=1.0,
+                     generator=torch.Generator().manual_seed(0), batch_size=32)
+    rb.append_transform(SelectTransform(*TRANSITION_KEYS), invert=True)  # store only these entries
+    rb.append_transform(ExcludeTransform(("next", "success")))  # applied to sampled batches
+    rb.extend(data)
+    assert "collector" not in rb.storage[:].keys()
+    b = rb.sample()
+    assert b.batch_size == (32,) and ("next", "success") not in b.keys(True, True)
+    check_relabelled_rows(b.set("is_demo", b["is_demo"]), s, newest_t=29, ring=100)
+    # add(): one transition of a one-stream buffer
+    one = MixedReplay(GOALS, RADIUS, capacity=10)
+    one.add(Streams(n_envs=1).batch(1)[0, 0])
+    assert len(one) == 1
+    with pytest.raises(ValueError, match="ndim=2"):
+        MixedReplay(GOALS, RADIUS, storage=ListStorage(10))
+
+
+def test_no_private_torchrl_attribute():
+    import inspect
+    import re
+
+    import srdcil.replay
+
+    src = inspect.getsource(srdcil.replay)
+    # private attributes of torchrl objects: _storage, _sampler, _writer, _cursor, _transform, _rng, ...
+    assert not re.findall(r"\._(storage|sampler|writer|cursor|transform|rng|len|batch_size)\b", src)
+
+
+@pytest.mark.parametrize("select", [False, True])
+@pytest.mark.parametrize("fmt", ["compact", "torchrl_storage"])
+def test_checkpoints_of_the_packed_buffer_still_load(fmt, select):
+    from pathlib import Path
+
+    from torchrl.envs import SelectTransform
+
+    states = torch.load(Path(__file__).parent / "data" / "legacy_replay_states.pt", weights_only=False)
+    s = Streams(n_envs=2, seed=11)  # the streams the fixture was written from (3 x 20 steps, ring 50)
+    for _ in range(3):
+        s.batch(20)
+    rb = MixedReplay(GOALS, RADIUS, capacity=100, relabel_fraction=1.0, generator=torch.Generator().manual_seed(0))
+    if select:  # as the recipes build it: the old rows go through the buffer's inverse transforms
+        rb.append_transform(SelectTransform(*TRANSITION_KEYS), invert=True)
+    rb.load_state_dict(states[fmt])
+    assert len(rb) == 100
+    b = rb.sample(1024)
+    assert b["observation"][:, 1].min() == 10 and b["observation"][:, 1].max() == 59
+    check_relabelled_rows(b, s, newest_t=59, ring=50)
+    rb.extend(s.batch(20))
+    check_relabelled_rows(rb.sample(1024), s, newest_t=79, ring=50)

@@ -145,6 +145,10 @@ def test_stop_after_success_then_auto_resume_skips_the_finished_run(tmp_path, wi
     r2 = train(config("sr_dcil_dubins", over), run_dir=tmp_path)
     assert r2["env_steps"] == r["env_steps"] and r2["first_chain_success_step"] == first
     assert (tmp_path / "metrics.jsonl").read_text() == before  # nothing was re-run
+    # a finished run kept without its checkpoint (its small files committed) is not run again either
+    (tmp_path / "checkpoint.pt").unlink()
+    r3 = train(config("sr_dcil_dubins", over), run_dir=tmp_path)
+    assert r3["env_steps"] == r["env_steps"] and (tmp_path / "metrics.jsonl").read_text() == before
     json.loads((tmp_path / "result.json").read_text(), parse_constant=lambda c: pytest.fail(f"bare {c}"))
 
 

@@ -229,25 +229,30 @@ class DemoResetTransform(Transform):
         mask = self._reset_mask(tensordict, bs, dev).unsqueeze(-1) if tensordict is not None else None
         goal = self.goals.to(dev)[idx.squeeze(-1)]
         budget = torch.full((*bs, 1), self.max_steps_per_goal, dtype=torch.int64, device=dev)
-        if mask is not None and "goal_idx" in tensordict_reset.keys():
+        gt = self._goal_transform()
+        # the goal transform's entry names (set_keys / out_keys), the defaults without one
+        k_idx, k_goal, k_budget = (("goal_idx", "goal", "goal_budget") if gt is None
+                                   else (gt.key("goal_idx"), gt.key("goal"), gt.key("goal_budget")))
+        if mask is not None and k_idx in tensordict_reset.keys(True):
             # Only the reset envs change; the rest keep what the goal transform wrote (TorchRL
             # discards those rows anyway when merging a partial reset).
-            idx = torch.where(mask, idx, tensordict_reset.get("goal_idx"))
-            goal = torch.where(mask, goal, tensordict_reset.get("goal"))
-            budget = torch.where(mask, budget, tensordict_reset.get("goal_budget"))
-        tensordict_reset.set("goal_idx", idx)
-        tensordict_reset.set("goal", goal)
-        tensordict_reset.set("goal_budget", budget)
-        gt = self._goal_transform()
+            idx = torch.where(mask, idx, tensordict_reset.get(k_idx))
+            goal = torch.where(mask, goal, tensordict_reset.get(k_goal))
+            budget = torch.where(mask, budget, tensordict_reset.get(k_budget))
+        tensordict_reset.set(k_idx, idx)
+        tensordict_reset.set(k_goal, goal)
+        tensordict_reset.set(k_budget, budget)
         if gt is not None and gt.onehot_key is not None:
             tensordict_reset.set(gt.onehot_key, gt._onehot(idx))
         return tensordict_reset
 
     # ------------------------------------------------------------------ step
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        idx = tensordict.get("goal_idx")
-        success = next_tensordict.get("success")
-        ended = success | (next_tensordict.get("goal_idx") != idx)
+        gt = self._goal_transform()
+        k_idx, k_success = ("goal_idx", "success") if gt is None else (gt.key("goal_idx"), gt.key("success"))
+        idx = tensordict.get(k_idx)
+        success = next_tensordict.get(k_success)
+        ended = success | (next_tensordict.get(k_idx) != idx)
         for key in ("done", "truncated", "terminated"):
             flag = next_tensordict.get(key, None)
             if flag is not None:

@@ -48,12 +48,13 @@ from typing import Callable
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from srdcil.rule import goal_success
 
-__all__ = ["GoalSequenceTransform"]
+__all__ = ["GoalSequenceTransform", "find_goal_transform"]
 
 Critic = Callable[[TensorDictBase], torch.Tensor]
 
@@ -67,24 +68,40 @@ class GoalSequenceTransform(Transform):
         max_steps_per_goal: per-goal budget T_max, reset on each goal switch.
 
     Keyword Args:
-        achieved_goal_key: entry of the base env holding the achieved goal of the state.
+        in_keys: ``[achieved_goal_key]``: the one entry read, the achieved goal of the state
+            (default ``["achieved_goal"]``; ``achieved_goal_key=`` is the same thing).
+        out_keys: the entries written, in the order of :meth:`key_names` (``goal``, ``goal_idx``,
+            ``goal_budget``, ``ags_armed``, ``success``, ``env_terminated`` [, ``ags_q_hist``]
+            [, ``onehot``]); default: those names. :meth:`set_keys` renames them by name.
+        achieved_goal_key: see ``in_keys``.
         ags: enable Approximate Goal Switching.
         ags_k: k, the budget left after AGS activation (and the threshold look-back).
-        critic: callable ``critic(td) -> Q̄ [*B, 1]``; it receives (a shallow copy of) the root
-            tensordict at time t (observation, goal, goal_idx, action, …) and is called under
-            ``torch.no_grad()``. A TensorDictModule returning a tensordict is also accepted: its
-            ``"state_action_value"`` entry is read. Required when ``ags=True`` by the time the env
-            is stepped; it is held by reference (not a submodule), see :meth:`set_critic`.
+        critic: callable ``critic(td) -> Q̄``; it receives the root tensordict at time t
+            (observation, goal, goal_idx, action, …; a shallow copy for a ``TensorDictModule``, so
+            its output does not leak into the rollout) and is called under ``torch.no_grad()``. It
+            may return ``[*B, 1]`` (or ``[*B]``), or an ensemble ``[*B, E, 1]``, reduced by the min
+            over its members as Q̄ is defined (e.g. :func:`srdcil.networks.make_qvalue` itself, or
+            ``loss.target_q_value``). A tensordict output is read at ``critic_key``. Required when
+            ``ags=True`` by the time the env is stepped; it is held by reference (not a submodule),
+            see :meth:`set_critic`.
         learn_thresholds: update θ on real successes (train env). An eval env typically shares
             the train env's thresholds with ``learn_thresholds=False``.
         thresholds: optional ``[N]`` float tensor used *as is* (shared, updated in place) as the
             threshold table; default: a fresh all-NaN (unset) table. Sharing holds as long as
             the transform is not moved to another device (``.to()`` would copy the buffer).
         onehot_key: if given, also write the one-hot index ``[N]`` float32 under this key.
+        critic_key: the entry read from a critic that returns a tensordict (default
+            ``"state_action_value"``).
         threshold_window: ``None`` (default): θ_i is a running max over the whole run, as the paper
             states. An int W: θ is learnt over windows of W env steps (all envs counted); at the end
             of each window θ_i becomes the running max of the pre-success Q values seen *in that
             window*, unset if goal i had no real success in it. See the module docstring for why.
+
+    The current goal is always taken from the goal table at the index the transform keeps
+    (``goal_idx``), never read back from the tensordict: transforms placed after this one may rewrite
+    or delete ``goal`` (``ObservationNorm(in_keys=["goal"])``, ``CatTensors(..., del_keys=True)``)
+    without changing success. The state entries (``goal_idx``, ``goal_budget``, ``ags_armed``,
+    ``ags_q_hist``) must survive the later transforms; a missing one raises a ``KeyError`` naming it.
 
     Entries written (root and ``next``): ``goal`` float32 [G], ``goal_idx`` int64 [1],
     ``goal_budget`` int64 [1], ``ags_armed`` bool [1], ``success`` bool [1],
@@ -105,7 +122,9 @@ class GoalSequenceTransform(Transform):
         radius: float,
         max_steps_per_goal: int,
         *,
-        achieved_goal_key="achieved_goal",
+        in_keys=None,
+        out_keys=None,
+        achieved_goal_key=None,
         ags: bool = False,
         ags_k: int = 2,
         critic: Critic | None = None,
@@ -113,6 +132,7 @@ class GoalSequenceTransform(Transform):
         thresholds: torch.Tensor | None = None,
         onehot_key: str | None = None,
         threshold_window: int | None = None,
+        critic_key="state_action_value",
     ):
         goals = torch.as_tensor(goals)
         if goals.ndim != 2 or goals.shape[0] < 1:
@@ -127,15 +147,39 @@ class GoalSequenceTransform(Transform):
             )
         if ags and int(ags_k) < 1:
             raise ValueError(f"GoalSequenceTransform: `ags_k` must be >= 1, got {ags_k}")
-        self.achieved_goal_key = achieved_goal_key
-        self.onehot_key = onehot_key
-        out_keys = ["goal", "goal_idx", "goal_budget", "ags_armed", "success", "env_terminated"]
+        if in_keys is not None:
+            in_keys = [in_keys] if isinstance(in_keys, (str, tuple)) else list(in_keys)
+            if len(in_keys) != 1:
+                raise ValueError(
+                    f"GoalSequenceTransform: in_keys is the one achieved-goal entry, got {in_keys}"
+                )
+            if achieved_goal_key is not None and in_keys[0] != achieved_goal_key:
+                raise ValueError(
+                    f"GoalSequenceTransform: in_keys={in_keys} and achieved_goal_key={achieved_goal_key!r} disagree"
+                )
+            achieved_goal_key = in_keys[0]
+        elif achieved_goal_key is None:
+            achieved_goal_key = "achieved_goal"
         self._learn = bool(ags and learn_thresholds)
+        names = list(self._STATE_NAMES)
         if self._learn:
-            out_keys.append("ags_q_hist")
+            names.append("ags_q_hist")
         if onehot_key is not None:
-            out_keys.append(onehot_key)
-        super().__init__(in_keys=[achieved_goal_key], out_keys=out_keys)
+            names.append("onehot")
+        keys = {n: n for n in names}
+        if onehot_key is not None:
+            keys["onehot"] = onehot_key
+        if out_keys is not None:
+            out_keys = list(out_keys)
+            if len(out_keys) != len(names):
+                raise ValueError(
+                    f"GoalSequenceTransform: out_keys must name, in this order, {names}; got {out_keys} "
+                    "(or rename single entries with set_keys(goal=..., ...))"
+                )
+            keys = dict(zip(names, out_keys))
+        self._keys = keys
+        self.critic_key = critic_key
+        super().__init__(in_keys=[achieved_goal_key], out_keys=[keys[n] for n in names])
 
         self.register_buffer("goals", goals.to(torch.float32).clone())
         n = goals.shape[0]
@@ -161,6 +205,63 @@ class GoalSequenceTransform(Transform):
         # θ learnt during the current window (rolled into ags_thresholds at the window's end)
         self.register_buffer("ags_thresholds_next", torch.full_like(thresholds, float("nan")))
         self._window_steps = 0
+
+    #: the entries every instance writes; ``ags_q_hist`` (AGS threshold learning) and ``onehot`` are optional
+    _STATE_NAMES = ("goal", "goal_idx", "goal_budget", "ags_armed", "success", "env_terminated")
+
+    # ------------------------------------------------------------------ keys
+    def key_names(self) -> list[str]:
+        """The names of the written entries, in the order of ``out_keys``."""
+        return list(self._keys)
+
+    def key(self, name: str):
+        """The entry written for ``name`` (``"goal"``, ``"goal_idx"``, …, ``"achieved_goal"``)."""
+        if name == "achieved_goal":
+            return self.in_keys[0]
+        try:
+            return self._keys[name]
+        except KeyError:
+            raise KeyError(f"GoalSequenceTransform: no entry named {name!r}; names: {['achieved_goal', *self._keys]}") from None
+
+    def set_keys(self, **kwargs) -> "GoalSequenceTransform":
+        """Rename entries by name, like ``LossModule.set_keys``: ``set_keys(goal="desired_goal",
+        achieved_goal="tip")``. Call it before the transform is put in an env (the env's specs are
+        built from the keys)."""
+        if self.parent is not None:
+            raise RuntimeError(
+                "GoalSequenceTransform.set_keys: the transform is already in an env whose specs use the old "
+                "keys; set the keys (or pass in_keys/out_keys) before building the TransformedEnv"
+            )
+        for name, key in kwargs.items():
+            if name == "achieved_goal":
+                self.in_keys = [key]
+            elif name in self._keys:
+                self._keys[name] = key
+            else:
+                raise ValueError(
+                    f"GoalSequenceTransform.set_keys: unknown name {name!r}; names: {['achieved_goal', *self._keys]}"
+                )
+        self.out_keys = [self._keys[n] for n in self._keys]
+        return self
+
+    @property
+    def achieved_goal_key(self):
+        return self.in_keys[0]
+
+    @property
+    def onehot_key(self):
+        return self._keys.get("onehot")
+
+    def _need(self, td: TensorDictBase, name: str) -> torch.Tensor:
+        key = self._keys[name]
+        x = td.get(key, None)
+        if x is None:
+            raise KeyError(
+                f"GoalSequenceTransform: the tensordict of this step has no {key!r} (the transform's "
+                f"{name!r} state, written at reset). A transform placed after it removed it, e.g. "
+                f"CatTensors(..., del_keys=True): keep it there (del_keys=False) or leave {key!r} out of it."
+            )
+        return x
 
     # ------------------------------------------------------------------ public helpers
     @property
@@ -191,17 +292,18 @@ class GoalSequenceTransform(Transform):
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         bs, dev = observation_spec.shape, observation_spec.device
         n, g = self.goals.shape
-        observation_spec["goal"] = Unbounded(shape=(*bs, g), dtype=torch.float32, device=dev)
-        observation_spec["goal_idx"] = Bounded(
+        K = self._keys
+        observation_spec[K["goal"]] = Unbounded(shape=(*bs, g), dtype=torch.float32, device=dev)
+        observation_spec[K["goal_idx"]] = Bounded(
             0, n - 1, shape=(*bs, 1), dtype=torch.int64, device=dev
         )
-        observation_spec["goal_budget"] = Bounded(
+        observation_spec[K["goal_budget"]] = Bounded(
             0, self.max_steps_per_goal, shape=(*bs, 1), dtype=torch.int64, device=dev
         )
-        for key in ("ags_armed", "success", "env_terminated"):
-            observation_spec[key] = Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=dev)
+        for name in ("ags_armed", "success", "env_terminated"):
+            observation_spec[K[name]] = Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=dev)
         if self._learn:
-            observation_spec["ags_q_hist"] = Unbounded(
+            observation_spec[K["ags_q_hist"]] = Unbounded(
                 shape=(*bs, self.ags_k), dtype=torch.float32, device=dev
             )
         if self.onehot_key is not None:
@@ -234,16 +336,17 @@ class GoalSequenceTransform(Transform):
         bs, dev = tensordict_reset.batch_size, self.goals.device
         idx = torch.zeros((*bs, 1), dtype=torch.int64, device=dev)
         false = torch.zeros((*bs, 1), dtype=torch.bool, device=dev)
+        K = self._keys
         out = {
-            "goal_idx": idx,
-            "goal": self.goals[0].expand(*bs, -1).clone(),
-            "goal_budget": torch.full((*bs, 1), self.max_steps_per_goal, dtype=torch.int64, device=dev),
-            "ags_armed": false,
-            "success": false.clone(),
-            "env_terminated": false.clone(),
+            K["goal_idx"]: idx,
+            K["goal"]: self.goals[0].expand(*bs, -1).clone(),
+            K["goal_budget"]: torch.full((*bs, 1), self.max_steps_per_goal, dtype=torch.int64, device=dev),
+            K["ags_armed"]: false,
+            K["success"]: false.clone(),
+            K["env_terminated"]: false.clone(),
         }
         if self._learn:
-            out["ags_q_hist"] = torch.full((*bs, self.ags_k), float("nan"), dtype=torch.float32, device=dev)
+            out[K["ags_q_hist"]] = torch.full((*bs, self.ags_k), float("nan"), dtype=torch.float32, device=dev)
         if self.onehot_key is not None:
             out[self.onehot_key] = self._onehot(idx)
         tensordict_reset.update(out)
@@ -262,21 +365,41 @@ class GoalSequenceTransform(Transform):
                 "pass `critic=` or call `set_critic(fn)` with fn(td) -> Q [*B, 1] before stepping."
             )
         with torch.no_grad():
+            if isinstance(critic, TensorDictModuleBase):
+                tensordict = tensordict.copy()  # its output entry must not leak into the rollout
             q = critic(tensordict)
         if isinstance(q, TensorDictBase):  # a TensorDictModule Q-network (e.g. a ValueOperator)
-            q = q.get("state_action_value")
-        return q.to(torch.float32).reshape(*tensordict.batch_size, 1)
+            q = q.get(self.critic_key)
+        bs = tensordict.batch_size
+        if q.shape == bs:
+            q = q.unsqueeze(-1)
+        elif q.dim() == len(bs) + 2 and q.shape[: len(bs)] == bs and q.shape[-1] == 1:
+            q = q.amin(-2)  # an ensemble [*B, E, 1] (e.g. make_qvalue): Q̄ = min over the members
+        elif q.shape != (*bs, 1):
+            raise ValueError(
+                f"GoalSequenceTransform: the AGS critic returned shape {tuple(q.shape)} for a batch "
+                f"{tuple(bs)}; expected [*B, 1], [*B] or an ensemble [*B, E, 1]"
+            )
+        return q.to(torch.float32)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         # Written for few small-tensor ops per step: the collector runs this on every env step.
         goals = self.goals
-        idx = tensordict.get("goal_idx")
-        goal = tensordict.get("goal")
-        budget = tensordict.get("goal_budget") - 1  # fresh tensor: safe to modify in place below
-        armed = tensordict.get("ags_armed")
+        K = self._keys
+        idx = self._need(tensordict, "goal_idx")
+        # g_i from the table, not from the tensordict (a later transform may have rewritten "goal")
+        goal = goals.index_select(0, idx.reshape(-1)).reshape(*idx.shape[:-1], goals.shape[-1])
+        budget = self._need(tensordict, "goal_budget") - 1  # fresh tensor: safe to modify in place below
+        armed = self._need(tensordict, "ags_armed")
 
         # success is judged against g_i, the goal *before* any switch
-        success = goal_success(next_tensordict.get(self.achieved_goal_key), goal, self.radius)
+        ag = next_tensordict.get(self.achieved_goal_key, None)
+        if ag is None:
+            raise KeyError(
+                f"GoalSequenceTransform: the env's step output has no {self.achieved_goal_key!r} (the achieved "
+                f"goal); entries: {sorted(map(str, next_tensordict.keys(True, True)))}. Pass in_keys=[<its key>]."
+            )
+        success = goal_success(ag, goal, self.radius)
         not_success = ~success
         last = idx >= goals.shape[0] - 1
 
@@ -293,7 +416,7 @@ class GoalSequenceTransform(Transform):
                 # cut to k *after* this step's decrement; min() so re-arming never extends it
                 budget = torch.where(activate, budget.clamp_max(self.ags_k), budget)
                 if self._learn:
-                    hist = tensordict.get("ags_q_hist")
+                    hist = self._need(tensordict, "ags_q_hist")
                     if success.device.type != "cpu" or bool(success.any()):
                         self._update_thresholds(idx, success, hist, q)
                     hist = torch.cat([hist[..., 1:], q], dim=-1)
@@ -325,18 +448,18 @@ class GoalSequenceTransform(Transform):
 
         out = {
             "reward": success.to(torch.float32),
-            "success": success,
-            "env_terminated": env_term,
-            "goal_idx": new_idx,
-            "goal": new_goal,
-            "goal_budget": budget,
-            "ags_armed": armed,
+            K["success"]: success,
+            K["env_terminated"]: env_term,
+            K["goal_idx"]: new_idx,
+            K["goal"]: new_goal,
+            K["goal_budget"]: budget,
+            K["ags_armed"]: armed,
             "terminated": terminated,
             "truncated": truncated,
             "done": done,
         }
         if hist is not None:
-            out["ags_q_hist"] = hist.masked_fill_(switch, float("nan"))  # new attempt: empty
+            out[K["ags_q_hist"]] = hist.masked_fill_(switch, float("nan"))  # new attempt: empty
         if self.onehot_key is not None:
             out[self.onehot_key] = self._onehot(new_idx)
         next_tensordict.update(out)
@@ -366,3 +489,23 @@ class GoalSequenceTransform(Transform):
             f"max_steps_per_goal={self.max_steps_per_goal}, ags={self.ags}, ags_k={self.ags_k}, "
             f"learn_thresholds={self.learn_thresholds})"
         )
+
+
+def find_goal_transform(env) -> GoalSequenceTransform:
+    """The :class:`GoalSequenceTransform` of a ``TransformedEnv`` (searched through nested
+    ``Compose`` and ``TransformedEnv`` layers); ``LookupError`` if it has none."""
+    from torchrl.envs.transforms import Compose, TransformedEnv
+
+    def walk(t):
+        if isinstance(t, GoalSequenceTransform):
+            yield t
+        elif isinstance(t, Compose):
+            for sub in t.transforms:
+                yield from walk(sub)
+
+    e = env
+    while isinstance(e, TransformedEnv):
+        for t in walk(e.transform):
+            return t
+        e = e.base_env
+    raise LookupError(f"{type(env).__name__} has no GoalSequenceTransform")
