@@ -501,7 +501,7 @@ def test_it_is_a_torchrl_replay_buffer_with_swappable_parts():
     assert "collector" not in rb.storage[:].keys()
     b = rb.sample()
     assert b.batch_size == (32,) and ("next", "success") not in b.keys(True, True)
-    check_relabelled_rows(b.set("is_demo", b["is_demo"]), s, newest_t=29, ring=100)
+    check_relabelled_rows(b, s, newest_t=29, ring=100)
     # another sampler: without replacement, 60 rows of the 60 stored are 60 distinct ones
     s2 = Streams(n_envs=2)
     rb2 = MixedReplay(GOALS, RADIUS, capacity=200, sampler=SamplerWithoutReplacement(), relabel_fraction=1.0)
