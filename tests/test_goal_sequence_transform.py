@@ -5,15 +5,12 @@ import math
 
 import pytest
 import torch
-from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Bounded, Categorical, Composite, Unbounded
-from torchrl.envs import EnvBase, SerialEnv, TransformedEnv
+from tensordict import TensorDictBase
+from torchrl.envs import SerialEnv, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
-from srdcil.transforms import GoalSequenceTransform
-
 from point_env import PointEnv
-
+from srdcil.transforms import GoalSequenceTransform
 
 GOALS_1D = torch.tensor([[1.0], [2.0], [3.0]])
 

@@ -487,7 +487,7 @@ def test_extra_keys_are_kept_and_the_loss_keys_reach_the_batch():
 
 
 def test_it_is_a_torchrl_replay_buffer_with_swappable_parts():
-    from torchrl.data import LazyMemmapStorage, ListStorage, ReplayBuffer
+    from torchrl.data import LazyMemmapStorage, ListStorage, ReplayBuffer, SamplerWithoutReplacement
     from torchrl.envs import ExcludeTransform, SelectTransform
 
     assert issubclass(MixedReplay, ReplayBuffer)
@@ -501,7 +501,14 @@ def test_it_is_a_torchrl_replay_buffer_with_swappable_parts():
     assert "collector" not in rb.storage[:].keys()
     b = rb.sample()
     assert b.batch_size == (32,) and ("next", "success") not in b.keys(True, True)
-    check_relabelled_rows(b.set("is_demo", b["is_demo"]), s, newest_t=29, ring=100)
+    check_relabelled_rows(b, s, newest_t=29, ring=100)
+    # another sampler: without replacement, 60 rows of the 60 stored are 60 distinct ones
+    s2 = Streams(n_envs=2)
+    rb2 = MixedReplay(GOALS, RADIUS, capacity=200, sampler=SamplerWithoutReplacement(), relabel_fraction=1.0)
+    rb2.extend(s2.batch(30))
+    b2 = rb2.sample(60)
+    assert len(set(zip(b2["observation"][:, 0].tolist(), b2["observation"][:, 1].tolist()))) == 60
+    check_relabelled_rows(b2, s2, newest_t=29, ring=100)
     # add(): one transition of a one-stream buffer
     one = MixedReplay(GOALS, RADIUS, capacity=10)
     one.add(Streams(n_envs=1).batch(1)[0, 0])
