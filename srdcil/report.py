@@ -222,8 +222,9 @@ def collect(results_dir, default_n_goals: int = DEFAULT_N_GOALS, methods=None, v
 # statistics
 
 
-def locf_on_grid(steps, values, grid) -> np.ndarray:
-    """Value of the last observation at or before each grid point (NaN before the first observation)."""
+def locf_on_grid(steps, values, grid, until=None) -> np.ndarray:
+    """Value of the last observation at or before each grid point (NaN before the first observation,
+    and after ``until`` when given: a run still in progress is not carried past where it is)."""
     steps = np.asarray(steps, dtype=float)
     values = np.asarray(values, dtype=float)
     grid = np.asarray(grid, dtype=float)
@@ -231,7 +232,14 @@ def locf_on_grid(steps, values, grid) -> np.ndarray:
     out = np.full(grid.shape, np.nan)
     ok = idx >= 0
     out[ok] = values[idx[ok]]
+    if until is not None:
+        out[grid > until] = np.nan
     return out
+
+
+def _until(run):
+    """Where an incomplete run's values stop (its last evaluation); None for a finished run."""
+    return run["evals"][-1][0] if run.get("status") == "incomplete" and run["evals"] else None
 
 
 _FIELDS = {"goals": 1, "chain": 2, "strict": 3, "goals_norm": 4}
@@ -240,7 +248,8 @@ _FIELDS = {"goals": 1, "chain": 2, "strict": 3, "goals_norm": 4}
 def run_curves(runs, grid, field: str = "goals_norm") -> np.ndarray:
     """(n_runs, len(grid)) LOCF values of ``field`` (goals, chain, strict or goals_norm); NaN before a run's first eval."""
     j = _FIELDS[field]
-    return np.array([locf_on_grid([e[0] for e in r["evals"]], [e[j] for e in r["evals"]], grid) for r in runs]
+    return np.array([locf_on_grid([e[0] for e in r["evals"]], [e[j] for e in r["evals"]], grid, _until(r))
+                     for r in runs]
                     ).reshape(len(runs), len(grid))
 
 
@@ -278,7 +287,7 @@ def solved_fraction(runs, grid) -> np.ndarray:
 
 def score_at(run, budget) -> float | None:
     """Normalised goals of the run's last evaluation at or before ``budget`` (None if it has none)."""
-    v = locf_on_grid([e[0] for e in run["evals"]], [e[4] for e in run["evals"]], [budget])[0]
+    v = locf_on_grid([e[0] for e in run["evals"]], [e[4] for e in run["evals"]], [budget], _until(run))[0]
     return None if np.isnan(v) else float(v)
 
 
@@ -627,7 +636,9 @@ def write_report(results_dir, out=None, budget=None, budgets=DEFAULT_BUDGETS, n_
     n_inc = sum(d["n_incomplete"] for d in summary.values())
     if n_inc:
         notes.append(f"{n_inc} run(s) have no result.json (in progress or interrupted); they are included "
-                     "with their evaluations so far (an unsolved one counts as unsolved).")
+                     "with their evaluations so far (an unsolved one counts as unsolved in the solved/n and "
+                     "steps-to-solve columns) and are not carried past their last evaluation in the curves "
+                     "and IQMs.")
     table, explain = _summary_markdown(summary, budget, budgets, iqm is not None, notes)
     files["summary.md"] = out / "summary.md"
     files["summary.md"].write_text(f"# Ablation summary: {results_dir}\n\n{table}\n\n{explain}\n")

@@ -197,3 +197,13 @@ def test_without_rliable(results, tmp_path, monkeypatch, capsys):
     doc = json.loads((tmp_path / "summary.json").read_text())
     assert list(doc["methods"]) == ["db_ags", "dcil_ii"] and doc["budgets"] == [10_000, 20_000]
     assert doc["methods"]["db_ags"]["iqm"]["10000"]["iqm"] is None
+
+
+def test_incomplete_run_is_not_carried_past_its_last_evaluation():
+    from srdcil.report import locf_on_grid, score_at
+
+    assert np.isnan(locf_on_grid([0, 1000], [0.2, 0.5], [500, 1000, 5000], until=1000)[2])
+    run = {"status": "incomplete", "evals": [(0, 1, 0, 0, 0.1), (1000, 3, 0, 0, 0.3)]}
+    assert score_at(run, 1000) == pytest.approx(0.3) and score_at(run, 50000) is None
+    run["status"] = "finished"
+    assert score_at(run, 50000) == pytest.approx(0.3)  # a finished run is carried (LOCF)
