@@ -15,6 +15,21 @@ def goal_success(achieved_goal: torch.Tensor, goal: torch.Tensor, radius: float)
     return (achieved_goal - goal).norm(dim=-1, keepdim=True) <= radius
 
 
+def advance(idx: torch.Tensor, goal: torch.Tensor, switch: torch.Tensor, goals: torch.Tensor):
+    """The goal-chain move: where ``switch`` (and i < N−1) go to (i+1, g_{i+1}), else stay on
+    (i, ``goal``). Used by the env transform on every step and by :func:`dcil_rule` on every row."""
+    switch = switch & (idx < goals.shape[0] - 1)
+    next_idx = idx + switch  # int64 + bool
+    table = goals.to(goal.device).index_select(0, next_idx.reshape(-1)).reshape(goal.shape)
+    return next_idx, torch.where(switch, table, goal)
+
+
+def terminal(success: torch.Tensor, idx: torch.Tensor, n_goals: int, env_terminated=None) -> torch.Tensor:
+    """``terminated``: success on the last goal, or a true env termination (never a timeout)."""
+    term = success & (idx >= n_goals - 1)
+    return term if env_terminated is None else term | env_terminated
+
+
 def dcil_rule(
     td: TensorDictBase,
     goals: torch.Tensor,
@@ -43,15 +58,8 @@ def dcil_rule(
     idx = td.get(goal_idx_key)
     n = goals.shape[0]
     r = goal_success(td.get(achieved_goal_key), goal, radius)
-    last = idx >= n - 1
-    switch = r & ~last
-    nxt = (idx + 1).clamp_max(n - 1)
-    next_idx = torch.where(switch, nxt, idx)
-    next_goal = torch.where(switch, goals.to(goal.device)[nxt.squeeze(-1)], goal)
-    env_term = td.get(env_terminated_key, None)
-    terminated = r & last
-    if env_term is not None:
-        terminated = terminated | env_term
+    next_idx, next_goal = advance(idx, goal, r, goals)
+    terminated = terminal(r, idx, n, td.get(env_terminated_key, None))
     td.set(reward_key, r.to(torch.float32))
     td.set(next_goal_key, next_goal)
     td.set(next_goal_idx_key, next_idx)

@@ -52,7 +52,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from srdcil.rule import goal_success
+from srdcil.rule import advance, goal_success, terminal
 
 __all__ = ["GoalSequenceTransform", "find_goal_transform"]
 
@@ -429,8 +429,7 @@ class GoalSequenceTransform(Transform):
         switch = (success | (spent & armed)) & ~last
         truncated = spent & ~switch
 
-        new_idx = idx + switch  # int64 + bool
-        new_goal = goals.index_select(0, new_idx.reshape(-1)).reshape(goal.shape)
+        new_idx, new_goal = advance(idx, goal, switch, goals)  # the one GC-MDP rule (srdcil.rule)
         budget.masked_fill_(switch, self.max_steps_per_goal)
         armed = armed & ~switch
 
@@ -438,7 +437,7 @@ class GoalSequenceTransform(Transform):
         env_term = next_tensordict.get("terminated", base_done)
         if env_term is None:
             env_term = torch.zeros_like(success)
-        terminated = (success & last) | env_term
+        terminated = terminal(success, idx, goals.shape[0], env_term)
         base_trunc = next_tensordict.get("truncated", None)
         if base_trunc is not None:
             truncated = truncated | base_trunc
