@@ -5,6 +5,8 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
+import srdcil.config  # noqa: F401  (registers the typed schema the recipe configs extend)
+
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "recipes" / "config"
 
 

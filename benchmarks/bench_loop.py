@@ -1,10 +1,11 @@
 """(b) Full training loop speed at 1 update per env step, as a ratio to the plain-PyTorch update limit.
 
-    python benchmarks/bench_loop.py [--frames 3000] [--variant db_ags] [--device cpu]
+    python benchmarks/bench_loop.py [--frames 3000] [--variant db_ags] [--device cpu] [--update-mode joint]
 
 Runs the real recipe loop (collector + goal transform + AGS + mixed replay + relabelling + updates)
-and, in the same process right after, the plain-PyTorch SAC update of the same networks and batch
-(benchmarks/bench_updates.py), so the ratio is measured in one run on one machine.
+and, in the same process right before and right after it, the plain-PyTorch SAC update of the same
+networks and batch (benchmarks/bench_updates.py); the ratio is to the mean of the two, measured in one
+run on one machine.
 """
 from __future__ import annotations
 
@@ -26,6 +27,9 @@ def main():
     p.add_argument("--device", default="cpu")
     p.add_argument("--recipe", default="sr_dcil_dubins")
     p.add_argument("--frames-per-batch", type=int, default=10)
+    p.add_argument("--update-mode", default=None, choices=["sequential", "joint"],
+                   help="optim.update_mode (default: the recipe's, the authors' order 'sequential'); the plain "
+                        "update it is compared with is always the one-backward (joint) update")
     a = p.parse_args()
     torch.set_num_threads(1)
     from srdcil.training import train
@@ -36,17 +40,22 @@ def main():
         f"collector.init_random_frames={warm}", f"collector.frames_per_batch={a.frames_per_batch}",
         "optim.utd_ratio=1.0", "eval.interval=1000000", "checkpoint.interval=1000000", "logger.backend=",
         "progress=false",
-    ])
+    ] + ([f"optim.update_mode={a.update_mode}"] if a.update_mode else []))
+    import bench_updates
+
+    # the plain update is timed right before and right after the loop (the machine's speed drifts)
+    plain_before = bench_updates.plain_rate_for_recipe(cfg, seconds=4.0)
     with tempfile.TemporaryDirectory() as d:
         r = train(cfg, run_dir=d)
     loop_rate = r["env_steps_per_s_after_warmup"]  # collection + replay + updates, warm-up excluded
-    import bench_updates
-
-    plain = bench_updates.plain_rate_for_recipe(cfg, seconds=5.0)
+    plain_after = bench_updates.plain_rate_for_recipe(cfg, seconds=4.0)
+    plain = 0.5 * (plain_before + plain_after)
     print(f"loop_env_steps_per_s_{a.variant}: {loop_rate:.2f} steps/s")
     print(f"loop_updates_per_s_in_loop_{a.variant}: {r['updates_per_s_in_loop']:.2f} updates/s")
-    print(f"plain_sac_updates_per_s: {plain:.2f} updates/s")
-    print(f"ratio_loop_to_plain_{a.variant}: {loop_rate / plain:.3f} x")
+    print(f"plain_sac_updates_per_s_before: {plain_before:.2f} updates/s")
+    print(f"plain_sac_updates_per_s_after: {plain_after:.2f} updates/s")
+    mode = cfg.optim.update_mode
+    print(f"ratio_loop_to_plain_{a.variant}_{mode}: {loop_rate / plain:.3f} x")
 
 
 if __name__ == "__main__":

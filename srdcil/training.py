@@ -136,9 +136,10 @@ class Progress:
         if self.t_warm is None:
             self.t_warm, self.f_warm = t, self.frames - int(round(credit))
         losses = None
-        for _ in range(k):
-            out = updater.step(replay.sample())
-            losses = out if losses is None else losses + out
+        for start in range(0, k, 16):  # the batches of a round are gathered together (same rows as one by one)
+            for batch in replay.sample_many(min(16, k - start)):
+                out = updater.step(batch)
+                losses = out if losses is None else losses + out
         self.t_update += time.perf_counter() - t
         self.n_updates += k
         self.n_updates_leg += k

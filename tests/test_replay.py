@@ -355,6 +355,35 @@ def test_state_dict_roundtrip_after_the_ring_wrapped_keeps_only_filled_rows():
     assert big.state_dict()["rows"].shape == (20, 2)  # not the million-row capacity
 
 
+@pytest.mark.parametrize("demo_kind", ["transitions", "states", "none"])
+def test_sample_many_is_k_samples_in_one_gather(demo_kind):
+    """The training loop gathers a round's batches at once: the same rows, draws and order as k calls."""
+    demo = {"transitions": make_demo(), "none": None,
+            "states": make_demo().select("observation", "goal", "goal_idx", "demo_return")}[demo_kind]
+
+    def fresh():
+        rb = MixedReplay(GOALS, RADIUS, capacity=1000, demo=demo, relabel_fraction=0.5,
+                         generator=torch.Generator().manual_seed(11))
+        s = Streams(n_envs=3, seed=4)
+        rb.extend(s.batch(40))
+        rb.extend(s.batch(40))
+        return rb
+
+    one, many = fresh(), fresh()
+    want = [one.sample(64, return_info=True) for _ in range(5)]
+    got = many.sample_many(5, 64, return_info=True)
+    assert len(got) == 5
+    for (wb, wi), (gb, gi) in zip(want, got):
+        assert gb.batch_size == (64,)
+        assert set(gb.keys(True, True)) == set(wb.keys(True, True))
+        for k in wb.keys(True, True):
+            assert torch.equal(gb[k], wb[k]), k
+        assert all(torch.equal(a, b) for a, b in zip(gi["index"], wi["index"]))
+    # both generators advanced alike: the next batch is the same too
+    assert torch.equal(one.sample(32)["goal"], many.sample(32)["goal"])
+    assert many.sample_many(0) == []
+
+
 def test_sample_speed():
     rb = MixedReplay(GOALS, RADIUS, capacity=100_000, demo=make_demo(), generator=torch.Generator().manual_seed(0))
     s = Streams(n_envs=4)
