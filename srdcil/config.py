@@ -154,6 +154,27 @@ def register() -> None:
 register()
 
 
+def from_saved(saved: dict | DictConfig) -> DictConfig:
+    """The config a run saved (in its checkpoint or ``config.yaml``) on today's schema: options added
+    since that run get their defaults, options removed since are dropped. So the figures and tools
+    read the checkpoints of older runs (e.g. a series pinned at an older commit)."""
+    schema = OmegaConf.structured(TrainConfig)
+    defaults = OmegaConf.to_container(schema)
+    saved = OmegaConf.to_container(saved, resolve=False) if OmegaConf.is_config(saved) else dict(saved)
+
+    def known(d: dict, ref: dict) -> dict:
+        out = {}
+        for k, v in d.items():
+            if k not in ref:
+                continue
+            r = ref[k]
+            out[k] = known(v, r) if isinstance(v, dict) and isinstance(r, dict) and r else v
+        return out
+
+    return OmegaConf.merge(schema, known(saved, defaults))
+
+
+
 # ------------------------------------------------------------------------------------------ checks
 def _check(ok: bool, key: str, value, expected: str) -> None:
     if not ok:

@@ -127,14 +127,13 @@ def method_label(cfg) -> str:
 
 def load_agent(path: str | Path) -> LoadedAgent:
     """Rebuild the task, actor and loss of a training checkpoint on the CPU, in eval mode."""
-    from omegaconf import OmegaConf
-
-    from srdcil.tasks import make_task
     from srdcil.builders import get_variant, make_agent, make_loss_and_updater
+    from srdcil.config import from_saved
+    from srdcil.tasks import make_task
 
     path = Path(path)
     ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    cfg = OmegaConf.create(ckpt["config"])
+    cfg = from_saved(ckpt["config"])
     task = make_task(cfg.env)
     variant = get_variant(cfg.variant)
     actor, qvalue, value = make_agent(task, cfg, variant, "cpu")

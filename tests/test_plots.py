@@ -100,6 +100,23 @@ def test_load_agent_restores_the_checkpoint(ckpts, agents):
     assert not a.has_value and agents["vc"].has_value
 
 
+def test_load_agent_reads_a_checkpoint_of_an_older_config(ckpts, tmp_path):
+    """A run of an older commit saved a config without options added since (env.options) and with
+    options removed since (env.action_dim): the figures still read it, with today's defaults filled in."""
+    ckpt = torch.load(ckpts["db_ags"], map_location="cpu", weights_only=False)
+    old = ckpt["config"]
+    del old["env"]["options"]
+    old["env"]["action_dim"] = 2
+    path = tmp_path / "old" / "checkpoint.pt"
+    ckpt_io.save(path, ckpt)
+    with pytest.raises(Exception, match="options"):  # what reading it as saved does
+        make_task(OmegaConf.create(old).env)
+    a = plots.load_agent(path)
+    assert a.cfg.env.options == {} and "action_dim" not in a.cfg.env
+    for k, v in a.loss.state_dict().items():
+        torch.testing.assert_close(v, ckpt["loss"][k], msg=k)
+
+
 @torch.no_grad()
 def test_value_grid_is_target_q_of_the_deterministic_action_maximised_over_headings(agents):
     a = agents["db_ags"]
