@@ -254,3 +254,22 @@ def test_shipped_demo_goal_extraction():
     assert int(steps[:-1].min()) >= 10 and int(steps.max()) <= 25
     obj = whole.goals[-1, 3:].numpy()  # the last goal: the object inside the compartment
     assert np.all(obj >= SUCCESS_BOX[0]) and np.all(obj <= SUCCESS_BOX[1])
+
+
+def test_eval_reports_whether_the_object_was_lifted():
+    from tensordict import TensorDict
+
+    from srdcil.envs.fetch.task import object_motion
+
+    ag = torch.as_tensor(_demo_arrays()["achieved_goals"], dtype=torch.float32)  # the demo grasps and lifts
+
+    def rollout(path):
+        return TensorDict({"achieved_goal": path[:-1], "next": {"achieved_goal": path[1:]}}, [len(path) - 1])
+
+    m = object_motion(rollout(ag))
+    obj = ag[:, 3:6] - ag[:1, 3:6]
+    assert m["object_lift_m"] == pytest.approx(float(obj[:, 2].max()), abs=1e-4) and m["object_lift_m"] > 0.1
+    assert m["object_moved_m"] == pytest.approx(float(obj[:, :2].norm(dim=-1).max()), abs=1e-4)
+    still = ag[:1].repeat(50, 1)
+    still[:, :3] += torch.linspace(0, 0.3, 50).unsqueeze(-1)  # only the gripper moves
+    assert object_motion(rollout(still)) == {"object_lift_m": 0.0, "object_moved_m": 0.0}

@@ -33,12 +33,27 @@ def make_task(env_cfg, demo, goals) -> Task:
 
     def eval_metrics(rollout: TensorDictBase) -> dict:
         ts = rollout.get(("next", "task_success"), None)
-        return {} if ts is None else {"task_success": bool(ts.any())}
+        out = {} if ts is None else {"task_success": bool(ts.any())}
+        return {**out, **object_motion(rollout)}
 
     def plot_rollout(rollout: TensorDictBase, path: Path) -> None:
         plot_fetch_rollout(rollout, demo, goals, path, obs_dim=obs_dim)
 
     return Task("fetch", demo, goals, make_base_env, env_cfg.max_steps_per_goal, eval_metrics, plot_rollout)
+
+
+def object_motion(rollout: TensorDictBase) -> dict:
+    """Did the rollout grasp and lift the object? From the object part of the achieved goal
+    (``[..., 3:6]``, metres) of a rollout ``[T]``: ``object_lift_m``, the highest the object rose above
+    its start, and ``object_moved_m``, its largest horizontal distance from its start. The box rests
+    on the table, so a lift of more than a few centimetres means it was held."""
+    ag = rollout.get("achieved_goal", None)
+    if ag is None or ag.shape[-1] < 6 or ag.shape[0] == 0:
+        return {}
+    path = torch.cat([ag[:1], rollout.get(("next", "achieved_goal"))], 0)[..., 3:6].float()
+    d = path - path[:1]
+    return {"object_lift_m": round(float(d[..., 2].max()), 4),
+            "object_moved_m": round(float(d[..., :2].norm(dim=-1).max()), 4)}
 
 
 def plot_fetch_rollout(rollout: TensorDictBase, demo: Demonstration, goals: GoalSequence, path: Path,
