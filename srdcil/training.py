@@ -71,6 +71,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
     keep_at = sorted(k for k in cfg.checkpoint.keep_at if k > p.frames)
     stop_after = 0 if (cfg.stop_after_success is None and cfg.stop_on_chain_success) else cfg.stop_after_success
     reason, t0 = "budget", time.perf_counter()
+    p.t_leg0 = t0
     with _StopSignals() as stop, _progress(cfg, p.frames) as bar:
         for data in collector:
             replay.extend(data)  # the storage computes the goal-attempt boundaries
@@ -119,6 +120,7 @@ class Progress:
     update_credit: float = 0.0
     next_eval: int = 0
     next_ckpt: int = 0
+    wall_s: float = 0.0  # wall time of the earlier legs of this run (a resumed run adds this leg's)
     # this leg only (not restored): time spent in updates, updates done
     t_update: float = 0.0
     n_updates_leg: int = 0
@@ -126,6 +128,11 @@ class Progress:
     t_warm: float | None = None  # clock and env steps when this leg's first updates ran
     f_warm: int = 0
     t_end: float = 0.0
+    t_leg0: float | None = None  # clock when this leg's loop started
+
+    def wall(self) -> float:
+        """Wall time of the whole run so far: the earlier legs + this one."""
+        return self.wall_s + (time.perf_counter() - self.t_leg0 if self.t_leg0 is not None else 0.0)
 
     def update(self, updater, replay, credit: float) -> dict:
         """``int`` of the accumulated credit SAC updates; returns the mean losses."""
@@ -161,7 +168,8 @@ class _Run:
         keep_replay = with_replay and self.cfg.checkpoint.save_replay
         live = self.live.current.cpu() if self.live is not None and self.live.current is not None else None
         ckpt_io.save(path, {
-            "frames": self.p.frames, "progress": asdict(self.p), "actor": self.actor.state_dict(),
+            "frames": self.p.frames, "progress": {**asdict(self.p), "wall_s": self.p.wall()},
+            "actor": self.actor.state_dict(),
             "loss": self.loss.state_dict(), "updater": self.updater.state_dict(),
             "transforms": self.env.transform.state_dict(), "ags_window_steps": self.gst._window_steps,
             "ags_thresholds": self.gst.ags_thresholds.detach().cpu().clone(),
@@ -185,7 +193,7 @@ class _Run:
             self.live.restore_on_next_reset(saved["live"])
         self.evaluator.load_state_dict(saved)
         frames = int(saved["frames"])
-        kept = ("n_updates", "update_credit", "next_eval", "next_ckpt")
+        kept = ("n_updates", "update_credit", "next_eval", "next_ckpt", "wall_s")
         self.p = Progress(**{k: v for k, v in saved.get("progress", {}).items() if k in kept})
         self.p.frames, self.p.frames_leg0 = frames, frames
         if "progress" not in saved:  # format 1: derive the schedule from the frame count
@@ -208,7 +216,7 @@ class _Run:
                 "seed": int(c.seed), "n_goals": len(self.task.goals), "budget_env_steps": int(c.collector.total_frames),
                 "stop_reason": reason, "first_chain_success_step": ev.first_chain,
                 "first_strict_success_step": ev.first_strict, "best_goals_reached": ev.best["eval/goals_reached"],
-                "wall_s": time.perf_counter() - t0, "env_steps_per_s": p.rate(t0),
+                "wall_s": p.wall(), "wall_s_this_leg": time.perf_counter() - t0, "env_steps_per_s": p.rate(t0),
                 "updates_per_s_in_loop": p.n_updates_leg / p.t_update if p.t_update > 0 else None,
                 # the loop proper (collection + replay + updates), warm-up and final eval excluded
                 "env_steps_per_s_after_warmup": ((p.frames - p.f_warm) / (p.t_end - p.t_warm)

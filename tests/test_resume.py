@@ -90,3 +90,6 @@ def test_signal_stops_cleanly_with_a_checkpoint_and_the_same_command_resumes(sig
     assert f"resumed from {out / 'checkpoint.pt'} at {ck['frames']} env steps" in r.stdout
     res = json.loads((out / "result.json").read_text())
     assert res["env_steps"] == ck["frames"] + 120
+    # the run's wall time counts both legs: the first one's as saved at the stop, plus this one
+    assert res["wall_s"] == pytest.approx(ck["progress"]["wall_s"] + res["wall_s_this_leg"], rel=1e-6)
+    assert ck["progress"]["wall_s"] > 0
