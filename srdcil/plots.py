@@ -39,8 +39,15 @@ chained evaluation takes). ``--live`` switches Q̄ to the live (non-target) twin
     V_demo saw-tooth; Value Cloning pins V to it on the demo states. This figure never reads the
     observation layout, so it works for Fetch checkpoints too.
 
+``run-curve`` (any run, any env)
+    Evaluation metrics of one or more run directories against env steps, from their
+    ``metrics.jsonl`` only (no checkpoint): one panel per key (default ``eval/goals_reached``, plus
+    ``eval/object_lift_m`` and ``eval/object_moved_m`` where a run logs them: did a Fetch policy grasp
+    and lift the box?), one line per run.
+
 CLI::
 
+    python -m srdcil.plots run-curve RUN_DIR [RUN_DIR ...] [--keys eval/goals_reached ...] --out curve.png
     python -m srdcil.plots value-maps CKPT [CKPT ...] [--goal-index 3|stall] [--use-v] [--rollout] --out value_maps.png
     python -m srdcil.plots ags-contour CKPT --goal-index 3 --out ags.png
     python -m srdcil.plots vc-diagnostic CKPT --out vc_diag.png
@@ -490,6 +497,51 @@ def _goal_arg(text: str):
         raise argparse.ArgumentTypeError(f"--goal-index: an integer or 'stall', got {text!r}") from None
 
 
+RUN_CURVE_KEYS = ("eval/goals_reached", "eval/object_lift_m", "eval/object_moved_m")
+
+
+def read_curves(run_dir: str | Path, keys: Sequence[str]) -> dict[str, tuple[list[int], list[float]]]:
+    """``{key: (env steps, values)}`` of the ``metrics.jsonl`` lines of ``run_dir`` that have the key."""
+    import json
+
+    path = Path(run_dir) / "metrics.jsonl"
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no metrics.jsonl (not a run directory?)")
+    out: dict[str, tuple[list[int], list[float]]] = {k: ([], []) for k in keys}
+    for line in path.read_text().splitlines():
+        row = json.loads(line)
+        for k in keys:
+            if k in row and isinstance(row[k], (int, float)):
+                out[k][0].append(int(row["env_steps"]))
+                out[k][1].append(float(row[k]))
+    return {k: v for k, v in out.items() if v[0]}
+
+
+def plot_run_curves(run_dirs: Sequence[str | Path], out: str | Path, keys: Sequence[str] = RUN_CURVE_KEYS) -> Path:
+    """One panel per key that some run logged, one line per run (its directory name)."""
+    import matplotlib.pyplot as plt
+
+    curves = {Path(d).name: read_curves(d, keys) for d in run_dirs}
+    shown = [k for k in keys if any(k in c for c in curves.values())]
+    if not shown:
+        raise ValueError(f"none of {list(keys)} is in the metrics of {[str(d) for d in run_dirs]}")
+    fig, axes = plt.subplots(1, len(shown), figsize=(4.6 * len(shown), 3.4), squeeze=False)
+    for ax, k in zip(axes[0], shown):
+        for name, c in curves.items():
+            if k in c:
+                ax.plot(np.asarray(c[k][0]) / 1000, c[k][1], label=name, lw=1.4)
+        ax.set_title(k)
+        ax.set_xlabel("env steps (thousands)")
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m srdcil.plots", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -521,6 +573,11 @@ def _parser() -> argparse.ArgumentParser:
     vc = sub.add_parser("vc-diagnostic", help="Fig. 5: V_demo, V and Q along the demonstration")
     vc.add_argument("ckpt")
     common(vc, "vc_diagnostic.png")
+
+    rc = sub.add_parser("run-curve", help="evaluation metrics of run directories vs env steps (metrics.jsonl)")
+    rc.add_argument("runs", nargs="+", help="run directories (with a metrics.jsonl)")
+    rc.add_argument("--keys", nargs="+", default=list(RUN_CURVE_KEYS), help="metrics to plot, one panel each")
+    rc.add_argument("--out", default="run_curve.png", help="output PNG path")
     return p
 
 
@@ -530,6 +587,10 @@ def main(argv: Sequence[str] | None = None) -> Path:
     matplotlib.use("Agg")
     torch.set_num_threads(1)
     args = _parser().parse_args(argv)
+    if args.cmd == "run-curve":
+        out = plot_run_curves(args.runs, args.out, args.keys)
+        print(f"[srdcil.plots] wrote {out}")
+        return out
     which = "live" if args.live else "target"
     if args.cmd == "vc-diagnostic":
         out = plot_vc_diagnostic(load_agent(args.ckpt), args.out, which=which)

@@ -242,3 +242,22 @@ def test_vc_diagnostic_works_on_a_fetch_checkpoint(tmp_path):
     assert _is_png(plots.plot_vc_diagnostic(a, tmp_path / "fetch_vc.png"))
     with pytest.raises(ValueError, match="Dubins"):
         plots.value_grid(a, 0, n=4, n_headings=2)
+
+
+def test_run_curve_reads_metrics_and_draws_one_panel_per_logged_key(tmp_path):
+    import json
+
+    run = tmp_path / "fetch_db_s0"
+    run.mkdir()
+    rows = [{"env_steps": 10, "train/q_mean": 0.1},  # a training line without eval keys: skipped
+            {"env_steps": 2000, "eval/goals_reached": 1, "eval/object_lift_m": 0.0},
+            {"env_steps": 4000, "eval/goals_reached": 4, "eval/object_lift_m": 0.12}]
+    (run / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    c = plots.read_curves(run, plots.RUN_CURVE_KEYS)
+    assert c == {"eval/goals_reached": ([2000, 4000], [1.0, 4.0]), "eval/object_lift_m": ([2000, 4000], [0.0, 0.12])}
+    out = plots.main(["run-curve", str(run), "--out", str(tmp_path / "curve.png")])
+    assert _is_png(out)
+    with pytest.raises(ValueError, match="none of"):
+        plots.plot_run_curves([run], tmp_path / "x.png", keys=["eval/nothing"])
+    with pytest.raises(FileNotFoundError, match="metrics.jsonl"):
+        plots.read_curves(tmp_path, ["eval/goals_reached"])
