@@ -526,11 +526,18 @@ class MixedReplay(ReplayBuffer):
         d = self._draw_training(n)
         return self._gather_training([d]), (d["slot"], d["env"])
 
-    def _demo_rows(self, n: int, like: TensorDictBase) -> TensorDictBase:
+    def _draw_demo(self, n: int) -> torch.Tensor:
+        """Indices of ``n`` demo rows (uniform, with replacement)."""
+        return torch.randint(self._dc_demo_len, (n,), generator=self.generator, device=self.device)
+
+    def _demo_at(self, idx: torch.Tensor, like: TensorDictBase) -> TensorDictBase:
+        """Demo rows ``idx`` with the entries of the training rows ``like``."""
         if self._dc_demo is None:
             self._dc_demo = self._align_demo(like)
-        idx = torch.randint(self._dc_demo_len, (n,), generator=self.generator, device=self.device)
         return self._dc_demo[idx]
+
+    def _demo_rows(self, n: int, like: TensorDictBase) -> TensorDictBase:
+        return self._demo_at(self._draw_demo(n), like)
 
     def _align_demo(self, like: TensorDictBase) -> TensorDictBase:
         """The demo with exactly the entries of the training rows ``like`` (zero fillers where the demo has none)."""
@@ -584,16 +591,13 @@ class MixedReplay(ReplayBuffer):
         for _ in range(k):  # the draws of one sample() call: sampler, relabelling, demo rows, shuffle
             draws.append(self._draw_training(n))
             if n_demo:
-                demo_idx.append(torch.randint(self._dc_demo_len, (n_demo,), generator=self.generator,
-                                              device=self.device))
+                demo_idx.append(self._draw_demo(n_demo))
             perms.append(self._perm(B))
         train = self._gather_training(draws)  # [k * n]
         perm = torch.stack(perms)  # [k, B]: row j of batch b is its train row p (p < n) or demo row p - n
         b = torch.arange(k, device=self.device).unsqueeze(1)
         if n_demo:
-            if self._dc_demo is None:
-                self._dc_demo = self._align_demo(train)
-            demo = self._dc_demo[torch.cat(demo_idx)]  # [k * n_demo]
+            demo = self._demo_at(torch.cat(demo_idx), train)  # [k * n_demo]
             src = torch.where(perm < n, b * n + perm, k * n + b * n_demo + (perm - n))
             rows = torch.cat([train, demo], 0)[src.reshape(-1)]
         else:
