@@ -1,0 +1,201 @@
+"""Why a Fetch run stalls: what each goal asks of the arm, and what the policy does at the box.
+
+Two views, both printed by ``python -m srdcil.envs.fetch.diagnosis [CKPT]``:
+
+* :func:`goal_table` (the task alone): for every goal of the chain, the demo step it was cut at, how
+  far the box must move between the previous goal and this one (``object_shift_m``), and whether
+  the goal can be reached with the box left where it was (``object_shift_m`` within the goal radius:
+  the 6-D distance is at least the box's own shift). A goal that cannot is where a grasp is needed.
+* :func:`grasp_probe` (a policy): the deterministic chained evaluation from the single start state,
+  reading the simulator at every step: distance gripper-box, finger opening, which fingers touch the
+  box, the finger command, the box's lift. Its summary says whether the policy closes the fingers
+  at the box, holds it between both fingers, and lifts it.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+FINGER_ACTIONS = slice(7, 9)  # the two finger position targets of the 9-D action (-1 closes)
+NEAR_M = 0.05  # "at the box": gripper within 5 cm of the box centre
+LIFT_M = 0.03  # a lift above this means the box is off the table
+
+
+def goal_table(task) -> list[dict]:
+    """One row per goal of ``task`` (a Fetch :class:`srdcil.tasks.Task`): ``goal``, ``demo_step``,
+    ``gripper``/``object`` (xyz, m), ``object_shift_m`` (box displacement since the previous goal, the
+    demo start for goal 0), ``reachable_unmoved`` (``object_shift_m`` <= goal radius), and
+    ``close_cmd_frac``: the fraction of the segment's demo actions whose finger command closes."""
+    demo, goals = task.demo, task.goals
+    idx = goals.demo_indices.cpu().tolist()
+    ag = demo.achieved_goals.double().cpu()
+    acts = demo.actions.double().cpu()
+    rows, prev = [], 0
+    for i, t in enumerate(idx):
+        g = goals.goals[i].double().cpu()
+        shift = float((g[3:6] - ag[prev, 3:6]).norm())
+        seg = acts[prev:t, FINGER_ACTIONS]
+        rows.append({
+            "goal": i,
+            "demo_step": int(t),
+            "gripper": [round(float(x), 3) for x in g[:3]],
+            "object": [round(float(x), 3) for x in g[3:6]],
+            "object_shift_m": round(shift, 3),
+            "reachable_unmoved": shift <= goals.radius,
+            "close_cmd_frac": round(float((seg.mean(-1) < 0).double().mean()) if len(seg) else 0.0, 2),
+        })
+        prev = t
+    return rows
+
+
+def _sim_record(fetch_env) -> dict:
+    """What the simulator of one :class:`FetchShelfEnv` shows now."""
+    d = fetch_env.data
+    grip, obj = fetch_env.gripper_pos(), fetch_env.object_pos()
+    fingers = [fetch_env.model.body(n).id for n in ("l_gripper_finger_link", "r_gripper_finger_link")]
+    touch = [False, False]
+    for k in range(d.ncon):
+        b = {int(fetch_env.geom_body[d.contact.geom1[k]]), int(fetch_env.geom_body[d.contact.geom2[k]])}
+        if fetch_env.obj_body in b:
+            for j, f in enumerate(fingers):
+                touch[j] |= f in b
+    return {"gripper_object_m": float(np.linalg.norm(grip - obj)),
+            "finger_opening_m": float(np.abs(d.qpos[fetch_env.finger_qpos_adr]).sum()),
+            "touch_left": touch[0], "touch_right": touch[1], "object_z": float(obj[2])}
+
+
+def grasp_probe(env, policy: Callable, *, max_steps: Optional[int] = None) -> dict:
+    """Roll ``policy`` out deterministically in ``env`` (a Fetch env with a goal transform, batch
+    ``[1]``) until the chain ends, reading the simulator after every step.
+
+    Returns ``{"summary": {...}, "steps": [per-step dicts]}``. Summary: ``steps``, ``goals_reached``,
+    ``stall_goal`` (goal index at the end), ``min_gripper_object_m``, ``steps_at_box`` (gripper
+    within 5 cm), ``close_cmd_at_box_frac`` (of those steps, the fraction whose finger command
+    closes), ``steps_both_fingers_touch``, ``max_lift_m`` (the box's largest rise above the lowest
+    point it had reached before, as :func:`~srdcil.envs.fetch.task.object_motion`), ``steps_lifted``
+    (risen above 3 cm), ``grasp_and_lift`` (both fingers on the box while lifted).
+    """
+    from srdcil.transforms import find_goal_transform
+
+    gst = find_goal_transform(env)
+    base = env.base_env
+    fetch_env = base.envs[0]
+    if max_steps is None:
+        max_steps = gst.num_goals * gst.max_steps_per_goal + 1
+    records: list[dict] = []
+
+    def callback(_env, td: TensorDictBase):
+        rec = _sim_record(fetch_env)
+        a = td.get("action").reshape(-1)
+        rec["finger_cmd"] = float(a[FINGER_ACTIONS].mean())
+        rec["goal_idx"] = int(td.get(gst.key("goal_idx")).reshape(-1)[0])
+        records.append(rec)
+
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        rollout = env.rollout(int(max_steps), policy, break_when_any_done=True, callback=callback)
+    while rollout.batch_dims > 1:
+        rollout = rollout[0]
+    success = rollout["next", gst.key("success")].reshape(-1)
+    z = np.array([r["object_z"] for r in records])
+    rise = z - np.minimum.accumulate(z)
+    at_box = [r for r in records if r["gripper_object_m"] <= NEAR_M]
+    both = [r["touch_left"] and r["touch_right"] for r in records]
+    lifted = (rise > LIFT_M).tolist()
+    summary = {
+        "steps": len(records),
+        "goals_reached": int(success.sum()),
+        "stall_goal": int(rollout["next", gst.key("goal_idx")][-1].reshape(-1)[0]),
+        "min_gripper_object_m": round(min(r["gripper_object_m"] for r in records), 4),
+        "steps_at_box": len(at_box),
+        "close_cmd_at_box_frac": round(float(np.mean([r["finger_cmd"] < 0 for r in at_box])), 3) if at_box else 0.0,
+        "steps_both_fingers_touch": int(sum(both)),
+        "max_lift_m": round(float(rise.max()), 4),
+        "steps_lifted": int(sum(lifted)),
+        "grasp_and_lift": bool(any(b and l for b, l in zip(both, lifted))),
+    }
+    return {"summary": summary, "steps": records}
+
+
+def probe_checkpoint(path) -> dict:
+    """:func:`grasp_probe` of a Fetch training checkpoint's actor (CPU), with its AGS thresholds."""
+    return _probe_with_task(path)[1]
+
+
+def _probe_with_task(path):
+    from srdcil.builders import make_env
+    from srdcil.plots import load_agent
+
+    agent = load_agent(path)
+    if agent.task.name != "fetch":
+        raise ValueError(f"{path}: a '{agent.task.name}' checkpoint; the grasp probe needs a Fetch one")
+    v, ags_cfg = agent.variant, agent.cfg.get("ags") or {}
+    env = make_env(agent.task, 1, "cpu", ags=v.ags, ags_k=int(ags_cfg.get("k", 2)),
+                   critic=agent.loss.target_q_value if v.ags else None, learn_thresholds=False,
+                   thresholds=agent.thresholds.clone())
+    out = grasp_probe(env, agent.actor)
+    out["summary"] = {"checkpoint": str(path), "env_steps": agent.frames, **out["summary"]}
+    return agent.task, out
+
+
+def _recipe_task(obs_dim: int):
+    """The task of ``recipes/sr_dcil_fetch.py`` on its defaults (needs the repository's recipes/)."""
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+
+    import srdcil.config  # noqa: F401  (registers the schema)
+    from srdcil.tasks import make_task
+
+    config_dir = Path(__file__).resolve().parents[3] / "recipes" / "config"
+    if not config_dir.is_dir():
+        raise FileNotFoundError(f"{config_dir} not found: run from a clone of the repository, or pass a checkpoint")
+    with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
+        cfg = compose(config_name="sr_dcil_fetch", overrides=[f"env.options.obs_dim={obs_dim}"])
+    return make_task(cfg.env)
+
+
+def _print_table(rows: Sequence[dict]) -> None:
+    print("goal  demo step  gripper xyz              object xyz               box shift  unmoved ok  close cmd")
+    for r in rows:
+        print(f"{r['goal']:>4}  {r['demo_step']:>9}  {str(r['gripper']):<23}  {str(r['object']):<23}  "
+              f"{r['object_shift_m']:>7.3f} m  {str(r['reachable_unmoved']):>10}  {r['close_cmd_frac']:>9.2f}")
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(prog="python -m srdcil.envs.fetch.diagnosis", description=__doc__.split("\n\n")[0])
+    p.add_argument("ckpts", nargs="*", help="Fetch training checkpoints to probe (none: the goal table only)")
+    p.add_argument("--obs-dim", type=int, default=604, help="observation layout of the goal table's task")
+    p.add_argument("--json", default=None, help="write the table and the probes' summaries to this file")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    probes, task = [], None
+    for c in args.ckpts:
+        agent_task, res = _probe_with_task(c)
+        task = task or agent_task
+        probes.append(res["summary"])
+    if task is None:
+        task = _recipe_task(args.obs_dim)
+    rows = goal_table(task)
+    print(f"goals of the Fetch demonstration (radius {task.goals.radius} m in the 6-D goal space):")
+    _print_table(rows)
+    for s in probes:
+        print(f"\n{s['checkpoint']}:")
+        for k, v in s.items():
+            if k != "checkpoint":
+                print(f"  {k}: {v}")
+    out = {"goals": rows, "probes": probes}
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(out, f, indent=1)
+        print(f"wrote {args.json}")
+    return out
+
+
+if __name__ == "__main__":
+    main()

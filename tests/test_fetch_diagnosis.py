@@ -1,0 +1,65 @@
+"""Fetch stall diagnosis: the goal table and the grasp probe tell a grasp from a hover."""
+import pytest
+import torch
+from tensordict import TensorDictBase
+
+from _helpers import config
+from srdcil.builders import make_env
+from srdcil.envs.fetch.diagnosis import goal_table, grasp_probe, main
+from srdcil.tasks import make_task
+
+
+@pytest.fixture(scope="module")
+def task():
+    torch.set_num_threads(1)
+    return make_task(config("sr_dcil_fetch", ["env.options.obs_dim=268"]).env)
+
+
+def test_goal_table_finds_the_first_goal_that_needs_the_box_moved(task):
+    rows = goal_table(task)
+    assert len(rows) == len(task.goals) == 12
+    assert all(r["reachable_unmoved"] == (r["object_shift_m"] <= task.goals.radius) for r in rows)
+    # goal 3 (the fingers start closing, the box 5.6 cm up) is within the radius of the box at rest:
+    # a hover above the box reaches it; goal 4 needs the box carried 34 cm
+    assert [r["reachable_unmoved"] for r in rows[:5]] == [True, True, True, True, False]
+    assert 0 < rows[3]["close_cmd_frac"] < 1 and rows[4]["close_cmd_frac"] == 1.0
+    assert rows[4]["object_shift_m"] > 0.3
+
+
+class Replay:
+    """Plays the demonstration's actions open loop; ``open_hand`` keeps the fingers open."""
+
+    def __init__(self, actions, open_hand=False):
+        self.actions, self.open_hand, self.t = actions, open_hand, 0
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        a = self.actions[min(self.t, len(self.actions) - 1)].clone()
+        if self.open_hand:
+            a[7:9] = 1.0
+        self.t += 1
+        td.set("action", a.reshape(td.batch_size + a.shape))
+        return td
+
+
+def _env(task):
+    return make_env(task, 1, "cpu", ags=False, ags_k=2)
+
+
+def test_probe_sees_the_demo_grasp_and_lift(task):
+    s = grasp_probe(_env(task), Replay(task.demo.actions))["summary"]
+    assert s["goals_reached"] >= 5 and s["grasp_and_lift"]
+    assert s["steps_both_fingers_touch"] > 20 and s["max_lift_m"] > 0.3
+    assert s["steps_at_box"] > 0 and s["close_cmd_at_box_frac"] > 0.5 and s["min_gripper_object_m"] < 0.02
+
+
+def test_probe_sees_no_grasp_with_an_open_hand(task):
+    s = grasp_probe(_env(task), Replay(task.demo.actions, open_hand=True))["summary"]
+    assert not s["grasp_and_lift"] and s["steps_lifted"] == 0 and s["max_lift_m"] < 0.03
+    assert s["close_cmd_at_box_frac"] == 0.0
+    assert s["goals_reached"] == 4 and s["stall_goal"] == 4  # goal 3 needs no grasp, goal 4 does
+
+
+def test_cli_writes_the_goal_table(tmp_path, capsys):
+    out = main(["--obs-dim", "268", "--json", str(tmp_path / "d.json")])
+    assert len(out["goals"]) == 12 and out["probes"] == []
+    assert (tmp_path / "d.json").exists() and "box shift" in capsys.readouterr().out
