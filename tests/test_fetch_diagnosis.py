@@ -63,3 +63,26 @@ def test_cli_writes_the_goal_table(tmp_path, capsys):
     out = main(["--obs-dim", "268", "--json", str(tmp_path / "d.json")])
     assert len(out["goals"]) == 12 and out["probes"] == []
     assert (tmp_path / "d.json").exists() and "box shift" in capsys.readouterr().out
+
+
+def test_experience_summary_counts_grasp_transitions_and_skips_demo_rows():
+    from tensordict import TensorDict
+
+    from srdcil.demo import load_shipped
+    from srdcil.envs.fetch.diagnosis import experience_summary
+
+    demo = load_shipped("fetch")  # 604-D observations: contacts included
+    n = demo.actions.shape[0]
+    is_demo = torch.zeros(n, 1, dtype=torch.bool)
+    rows = TensorDict({"goal_idx": torch.zeros(n, 1, dtype=torch.long), "is_demo": is_demo,
+                       "next": {"achieved_goal": demo.achieved_goals[1:], "observation": demo.observations[1:]}}, [n])
+    rest = float(demo.achieved_goals[:, 5].min())
+    s = experience_summary(rows, rest)
+    assert s["transitions"] == n and s["per_goal"] == [n]
+    assert s["both_fingers_touch"] > 20 and s["at_box"] > 0 and s["box_lifted"] > 100
+    rows["is_demo"][:] = True
+    assert experience_summary(rows, rest)["transitions"] == 0
+    hover = rows[:63].clone()  # down to the box, fingers not yet closed on it
+    hover["is_demo"][:] = False
+    s = experience_summary(hover, rest)
+    assert s["both_fingers_touch"] == 0 and s["box_lifted"] == 0 and s["at_box"] > 0  # hand on the box, before the lift

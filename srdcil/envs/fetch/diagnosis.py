@@ -10,6 +10,8 @@ Two views, both printed by ``python -m srdcil.envs.fetch.diagnosis [CKPT]``:
   reading the simulator at every step: distance gripper-box, finger opening, which fingers touch the
   box, the finger command, the box's lift. Its summary says whether the policy closes the fingers
   at the box, holds it between both fingers, and lifts it.
+* :func:`experience_summary` (a checkpoint's replay buffer): how much of the agent's own experience
+  was spent on each goal, at the box, touching it with both fingers, with the box risen.
 """
 from __future__ import annotations
 
@@ -122,6 +124,41 @@ def grasp_probe(env, policy: Callable, *, max_steps: Optional[int] = None) -> di
     return {"summary": summary, "steps": records}
 
 
+def _contact_column(a: str, b: str) -> int:
+    """Index in the 604-D observation of the contact boolean of bodies ``a`` and ``b``."""
+    import itertools
+
+    from .core import CONTACT_NAMES
+
+    i, j = sorted((CONTACT_NAMES.index(a), CONTACT_NAMES.index(b)))
+    return 216 + list(itertools.combinations(range(len(CONTACT_NAMES)), 2)).index((i, j))
+
+
+def experience_summary(rows: TensorDictBase, rest_z: float) -> dict:
+    """What the agent's own transitions (replay rows ``[N, ...]``, demo rows excluded) show, from
+    their ``("next", "achieved_goal")`` (and the contact booleans of a 604-D ``("next", "observation")``):
+    ``transitions``, ``per_goal`` (transitions collected while pursuing each goal index), ``at_box``
+    (gripper within 5 cm of the box), ``box_lifted`` (at the box, and the box more than 3 cm above
+    ``rest_z``: not its drop at reset) and, with contacts, ``both_fingers_touch``."""
+    rows = rows.reshape(-1)
+    if "is_demo" in rows.keys():
+        rows = rows[~rows["is_demo"].reshape(-1)]
+    ag = rows["next", "achieved_goal"].float()
+    at_box = (ag[:, :3] - ag[:, 3:6]).norm(dim=-1) <= NEAR_M
+    out = {
+        "transitions": int(ag.shape[0]),
+        "per_goal": torch.bincount(rows["goal_idx"].reshape(-1)).tolist(),
+        "at_box": int(at_box.sum()),
+        "box_lifted": int((at_box & (ag[:, 5] - rest_z > LIFT_M)).sum()),
+    }
+    obs = rows["next", "observation"]
+    if obs.shape[-1] == 604:
+        left = obs[:, _contact_column("l_gripper_finger_link", "obj0")] > 0.5
+        right = obs[:, _contact_column("r_gripper_finger_link", "obj0")] > 0.5
+        out["both_fingers_touch"] = int((left & right).sum())
+    return out
+
+
 def probe_checkpoint(path) -> dict:
     """:func:`grasp_probe` of a Fetch training checkpoint's actor (CPU), with its AGS thresholds."""
     return _probe_with_task(path)[1]
@@ -140,6 +177,10 @@ def _probe_with_task(path):
                    thresholds=agent.thresholds.clone())
     out = grasp_probe(env, agent.actor)
     out["summary"] = {"checkpoint": str(path), "env_steps": agent.frames, **out["summary"]}
+    replay = torch.load(path, map_location="cpu", weights_only=False).get("replay")
+    if isinstance(replay, dict) and "rows" in replay:
+        rest_z = float(agent.task.demo.achieved_goals[:, 5].min())  # the box on the table
+        out["summary"]["experience"] = experience_summary(replay["rows"], rest_z)
     return agent.task, out
 
 
