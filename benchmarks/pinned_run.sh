@@ -1,0 +1,65 @@
+#!/usr/bin/env bash
+# A long series of runs at a fixed commit, safe from edits to your working tree.
+#
+#   benchmarks/pinned_run.sh setup DIR [COMMIT] [EXTRAS]  git worktree DIR/wt at COMMIT (default HEAD), its own
+#                                                     venv DIR/venv (pip install -e "DIR/wt[EXTRAS]", default
+#                                                     EXTRAS=sweep), the commit in DIR/COMMIT
+#   benchmarks/pinned_run.sh run DIR CMD...           run CMD in DIR/wt with DIR/venv, one torch thread, wandb off
+#                                                     (relative paths in CMD are relative to DIR/wt)
+#   benchmarks/pinned_run.sh sync RUNS DEST           copy the small files of every run directory under RUNS
+#                                                     (config, metrics, result, pictures; never checkpoints) to
+#                                                     DEST/<run>, and the series' COMMIT (found in RUNS or
+#                                                     up to two levels above) to DEST/SERIES_COMMIT
+#
+# Example (the maze ablation, two runs at a time, in the background; start the same line again to resume):
+#   benchmarks/pinned_run.sh setup ~/series
+#   nohup benchmarks/pinned_run.sh run ~/series python recipes/sr_dcil_dubins.py -m experiment=dubins_ablation \
+#       hydra/launcher=joblib hydra.launcher.n_jobs=2 hydra.sweep.dir=$HOME/series/results/dubins_ablation > series.log 2>&1 &
+#   benchmarks/pinned_run.sh sync ~/series/results/dubins_ablation results/dubins_ablation
+set -euo pipefail
+REPO="$(cd "$(dirname "$0")/.." && pwd)"
+usage() { sed -n '2,18p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
+[ $# -ge 2 ] || usage
+cmd=$1; dir=$2; shift 2
+case "$cmd" in
+  setup)
+    commit=$(git -C "$REPO" rev-parse --verify "${1:-HEAD}^{commit}")
+    extras=${2:-sweep}
+    mkdir -p "$dir"
+    if [ -d "$dir/wt" ]; then
+      have=$(git -C "$dir/wt" rev-parse HEAD)
+      [ "$have" = "$commit" ] || { echo "$dir/wt is at $have, not $commit: use another DIR" >&2; exit 1; }
+    else
+      git -C "$REPO" worktree add --detach "$dir/wt" "$commit"
+    fi
+    if [ ! -x "$dir/venv/bin/python" ]; then
+      python3 -m venv "$dir/venv"
+      "$dir/venv/bin/pip" install -q torch==2.13.0
+      "$dir/venv/bin/pip" install -q -e "$dir/wt[$extras]"
+    fi
+    echo "$commit" > "$dir/COMMIT"
+    echo "pinned at $commit: $dir/wt, venv $dir/venv" ;;
+  run)
+    [ $# -ge 1 ] || usage
+    [ -f "$dir/COMMIT" ] || { echo "$dir is not set up: run '$0 setup $dir' first" >&2; exit 1; }
+    dir=$(cd "$dir" && pwd); cd "$dir/wt"
+    export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 WANDB_MODE=${WANDB_MODE:-disabled} PYTHONUNBUFFERED=1
+    export PATH="$(cd "$dir" && pwd)/venv/bin:$PATH" VIRTUAL_ENV="$(cd "$dir" && pwd)/venv"
+    exec "$@" ;;
+  sync)
+    [ $# -ge 1 ] || usage
+    src=$dir; dest=$1; n=0
+    for d in "$src"/*/; do
+      [ -f "$d/config.yaml" ] || [ -f "$d/metrics.jsonl" ] || continue
+      name=$(basename "$d"); mkdir -p "$dest/$name"
+      for f in config.yaml metrics.jsonl result.json "$d"/*.png; do
+        f=$(basename "$f"); [ -f "$d/$f" ] && cp "$d/$f" "$dest/$name/"
+      done
+      n=$((n + 1))
+    done
+    for c in "$src/COMMIT" "$src/../COMMIT" "$src/../../COMMIT"; do  # the series' DIR/COMMIT
+      if [ -f "$c" ]; then cp "$c" "$dest/SERIES_COMMIT"; break; fi
+    done
+    echo "copied the small files of $n runs to $dest" ;;
+  *) usage ;;
+esac
