@@ -81,6 +81,9 @@ class ReplayConfig:
 class AGSConfig:
     k: int = 2  # switch k steps after AGS first fires
     threshold_window: Optional[int] = 2000  # env steps per threshold window; None: the paper's running max
+    # env steps between re-reads of the running max with the current target critic over the stored
+    # (s, a) pairs k steps before every real success (needs threshold_window: null); None: never
+    recompute_interval: Optional[int] = None
 
 
 @dataclass
@@ -239,6 +242,11 @@ def validate(cfg: DictConfig) -> DictConfig:
     _check(c.ags.k >= 1, "ags.k", c.ags.k, ">= 1")
     _check(c.ags.threshold_window is None or c.ags.threshold_window >= 1, "ags.threshold_window",
            c.ags.threshold_window, ">= 1 or null (the paper's running max)")
+    _check(c.ags.recompute_interval is None or c.ags.recompute_interval >= 1, "ags.recompute_interval",
+           c.ags.recompute_interval, ">= 1 or null (never)")
+    _check(c.ags.recompute_interval is None or c.ags.threshold_window is None, "ags.recompute_interval",
+           c.ags.recompute_interval, "null while ags.threshold_window is set (re-reading applies to the paper's "
+           "running max: set ags.threshold_window=null)")
     _check(c.eval.interval >= 1, "eval.interval", c.eval.interval, ">= 1")
     _check(c.checkpoint.interval >= 1, "checkpoint.interval", c.checkpoint.interval, ">= 1")
     _check(all(k >= 1 for k in c.checkpoint.keep_at), "checkpoint.keep_at", list(c.checkpoint.keep_at),

@@ -625,6 +625,30 @@ class MixedReplay(ReplayBuffer):
             vs = torch.cat([vs, self._demo_rows(n_demo, train).select(*keys)], 0)
         return vs[self._perm(B)]
 
+    def success_lookback(self, k: int) -> TensorDictBase:
+        """The stored training row ``k`` steps before each real success (``("next", success)``), within
+        the success's goal attempt: the attempt's first stored row when the attempt is shorter. These
+        are the (s, a) pairs whose critic values are the AGS thresholds; with ``goal`` and
+        ``goal_idx`` as stored (the goal pursued, never relabelled). A ``TensorDict[M]``, one row per
+        stored success, through the buffer's transforms like :meth:`sample`."""
+        if int(k) < 0:
+            raise ValueError(f"MixedReplay.success_lookback: k must be >= 0, got {k}")
+        if self._dc_n_envs is None or len(self) == 0:
+            raise RuntimeError("MixedReplay.success_lookback: the training storage is empty; call extend() first")
+        K, C = self.tensor_keys, self._dc_ring
+        stored = self.storage.get(slice(None))  # a view of the written rows [rows, n_envs]
+        succ = stored.get(_nxt(K.success)).reshape(stored.shape[0], -1).to(self.device)
+        slot, env = succ.nonzero(as_tuple=True)
+        t = self._dc_slot_t[slot]
+        attempt = self._dc_att[slot, env]
+        back = torch.zeros_like(t)  # the largest j <= k such that step t - j is stored in the same attempt
+        for j in range(1, int(k) + 1):
+            s = (t - j + self._dc_offset) % C
+            ok = (t - j >= 0) & (self._dc_slot_t[s] == t - j) & (self._dc_att[s, env] == attempt) & (back == j - 1)
+            back = torch.where(ok, torch.full_like(back, j), back)
+        rows = self.storage.get(((t - back + self._dc_offset) % C, env))
+        return self.transform(rows) if len(self.transform) else rows
+
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:
         """The stored steps of every stream in time order and the bookkeeping (the demo is rebuilt

@@ -70,7 +70,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
     p, ckpt_path = run.p, run_dir / "checkpoint.pt"
     keep_at = sorted(k for k in cfg.checkpoint.keep_at if k > p.frames)
     stop_after = 0 if (cfg.stop_after_success is None and cfg.stop_on_chain_success) else cfg.stop_after_success
-    reason, t0 = "budget", time.perf_counter()
+    reason, t0, every = "budget", time.perf_counter(), cfg.ags.recompute_interval
     p.t_leg0 = t0
     with _StopSignals() as stop, _progress(cfg, p.frames) as bar:
         for data in collector:
@@ -81,6 +81,9 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
                  "train/attempt_timeouts": int(data["next", "truncated"].sum())}
             if p.frames >= cfg.collector.init_random_frames:  # utd_ratio SAC updates per env step, 80/20
                 m.update(p.update(updater, replay, data.numel() * cfg.optim.utd_ratio))
+            if every and variant.ags and p.frames // every > (p.frames - data.numel()) // every:
+                # AGS θ_i re-read: today's target critic at the stored pairs k steps before real successes
+                run.gst.recompute_thresholds(replay.success_lookback(cfg.ags.k))
             if p.frames >= p.next_eval:  # deterministic chained evaluation from s_0
                 m.update(evaluator(p.frames))
                 p.next_eval += cfg.eval.interval

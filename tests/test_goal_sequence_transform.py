@@ -286,6 +286,25 @@ def test_ags_threshold_window_follows_recent_successes_and_unsets_idle_goals():
     assert torch.isnan(t.ags_thresholds).all()
 
 
+def test_recompute_thresholds_is_the_max_of_todays_critic_per_goal():
+    from tensordict import TensorDict
+
+    def critic(td):  # today's Q̄: a known function of the state
+        return td["observation"] * 10.0
+
+    shared = torch.tensor([0.05, 0.05, float("nan")])  # stale θ from an early, small critic
+    env = make_env(goals=GOALS_1D, ags=True, ags_k=2, critic=critic, thresholds=shared)
+    t = env.transform
+    rows = TensorDict({"observation": torch.tensor([[0.2], [0.5], [0.1], [0.9]]),
+                       "goal_idx": torch.tensor([[0], [0], [1], [1]]), "action": torch.zeros(4, 1)}, [4])
+    t.recompute_thresholds(rows)
+    assert torch.allclose(shared[:2], torch.tensor([5.0, 9.0])) and torch.isnan(shared[2])  # in place, shared
+    t.recompute_thresholds(rows[:2])  # goal 1 has no stored success any more: unset
+    assert shared[0].item() == pytest.approx(5.0) and torch.isnan(shared[1:]).all()
+    t.recompute_thresholds(rows[:0])
+    assert torch.isnan(shared).all()
+
+
 def test_ags_never_arms_at_last_goal_and_shared_thresholds():
     """At the last goal there is nothing to switch to: AGS must not arm nor cut the budget, even
     when Q̄ >= θ at every step (the old code cut the last attempt to k steps, in evaluation too)."""

@@ -578,3 +578,34 @@ def test_checkpoints_of_the_packed_buffer_still_load(fmt, select):
     check_relabelled_rows(b, s, newest_t=59, ring=50)
     rb.extend(s.batch(20))
     check_relabelled_rows(rb.sample(1024), s, newest_t=79, ring=50)
+
+
+@pytest.mark.parametrize("capacity,k", [(1000, 2), (31, 3), (1000, 0)])
+def test_success_lookback_rows_are_k_back_in_the_same_stored_attempt(capacity, k):
+    s = Streams(n_envs=2, p_end=0.3, seed=capacity + k)
+    rb = MixedReplay(GOALS, RADIUS, capacity=capacity, demo=make_demo(), generator=torch.Generator().manual_seed(3))
+    g = torch.Generator().manual_seed(4)
+    success = {}
+    for _ in range(6):
+        b = s.batch(13)
+        succ = b["next", "attempt_end"] & (torch.rand(b.shape, generator=g) < 0.6).unsqueeze(-1)
+        b["next", "success"] = succ
+        for e, t in (b["observation"][..., :2][succ.squeeze(-1)]).long().tolist():
+            success[(e, t)] = True
+        rb.extend(b)
+    ring = -(-capacity // 2)
+    newest = s.t - 1
+    stored = [(e, t) for (e, t) in success if t > newest - ring]
+    expect = []
+    for e, t in sorted(stored):
+        j = 0
+        while j < k and t - j - 1 >= max(0, newest - ring + 1) and s.truth[(e, t - j - 1)] == s.truth[(e, t)]:
+            j += 1
+        expect.append((e, t - j, s.truth[(e, t)]))
+    rows = rb.success_lookback(k)
+    assert not rows["is_demo"].any()
+    got = sorted(zip(*(rows["observation"][:, i].long().tolist() for i in range(3))))
+    assert got == sorted(expect) and len(got) == len(stored) >= (2 if capacity < 100 else 10)
+    if k > 0:  # some successes come after a short attempt: their row is the attempt's first
+        assert any(t_back > newest - ring and e_t[1] - t_back < k
+                   for e_t, (_, t_back, _) in zip(sorted(stored), sorted(expect)))

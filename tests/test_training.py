@@ -166,3 +166,29 @@ def test_method_group_and_ablation_experiment_configs():
     cfg = config("sr_dcil_dubins", ["experiment=dubins_ablation", "method=vc_ags"])
     assert cfg.collector.total_frames == 100_000 and cfg.stop_after_success == 20_000
     assert cfg.resume == "auto" and list(cfg.checkpoint.keep_at) == [15000]
+
+
+def test_recomputed_thresholds_rule_learns_and_rereads_theta_every_interval(tmp_path, wiggle_demo, monkeypatch):
+    """``method=db_ags_recompute``: every ``ags.recompute_interval`` env steps the loop sets θ from
+    today's target critic at the stored pairs k steps before each real success; the run learns."""
+    from srdcil.transforms import GoalSequenceTransform
+
+    calls = []
+    orig = GoalSequenceTransform.recompute_thresholds
+
+    def spy(self, rows):
+        orig(self, rows)
+        calls.append((rows.batch_size.numel(), self.ags_thresholds.clone()))
+
+    monkeypatch.setattr(GoalSequenceTransform, "recompute_thresholds", spy)
+    cfg = config("sr_dcil_dubins", reduced(wiggle_demo) + ["method=db_ags_recompute", "collector.total_frames=8000",
+                                                           "ags.recompute_interval=120"])
+    assert cfg.ags.threshold_window is None
+    r = train(cfg, run_dir=tmp_path)
+    assert r["first_chain_success_step"] is not None, f"best {r['best_goals_reached']} goals"
+    assert len(calls) == r["env_steps"] // 120  # once per interval crossed (12 env steps per round)
+    assert calls[-1][0] > 0  # rows from stored successes
+    assert max(int((~torch.isnan(th)).sum()) for _, th in calls) >= 3  # θ for most goals
+    with pytest.raises(Exception, match="recompute_interval"):
+        train(config("sr_dcil_dubins", reduced(wiggle_demo) + ["method=db_ags", "ags.recompute_interval=100"]),
+              run_dir=tmp_path / "bad")

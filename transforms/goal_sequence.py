@@ -281,6 +281,26 @@ class GoalSequenceTransform(Transform):
         self.ags_thresholds.fill_(float("nan"))
         self.ags_thresholds_next.fill_(float("nan"))
 
+    def recompute_thresholds(self, rows: TensorDictBase) -> None:
+        """θ_i ← max of the current critic's Q̄ over the ``rows`` pursuing goal i (their ``goal_idx``
+        entry), unset (NaN) for goals without a row; in place, so a shared table follows.
+
+        With ``rows`` the (s, a) pairs k steps before every stored real success
+        (:meth:`srdcil.replay.MixedReplay.success_lookback`), this is the paper's running max re-read
+        with today's critic: a θ_i set when Q̄ was still small no longer stays below the later Q̄ of
+        almost every state (the stale-θ failure the threshold windows also address)."""
+        n = self.num_goals
+        if rows.batch_size.numel() == 0:  # (TensorDict.numel() is never 0)
+            self.reset_thresholds()
+            return
+        q = self._critic_values(rows.reshape(-1)).reshape(-1)
+        idx = rows.get(self.key("goal_idx")).reshape(-1).to(q.device).long()
+        work = torch.full((n,), float("-inf"), dtype=q.dtype, device=q.device)
+        work = work.scatter_reduce(0, idx, q, reduce="amax", include_self=True)
+        work = torch.where(torch.isinf(work), float("nan"), work)
+        self.ags_thresholds.copy_(work.to(self.ags_thresholds))
+        self.ags_thresholds_next.fill_(float("nan"))
+
     def roll_thresholds(self) -> None:
         """End a threshold window: θ ← the thresholds learnt in this window (unset for goals with no
         real success in it), and start a new, empty window."""
