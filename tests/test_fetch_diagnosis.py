@@ -1,11 +1,10 @@
 """Fetch stall diagnosis: the goal table and the grasp probe tell a grasp from a hover."""
 import pytest
 import torch
-from tensordict import TensorDictBase
 
 from _helpers import config
 from srdcil.builders import make_env
-from srdcil.envs.fetch.diagnosis import goal_table, grasp_probe, main
+from srdcil.envs.fetch.diagnosis import DemoReplay, goal_table, grasp_probe, main
 from srdcil.tasks import make_task
 
 
@@ -26,19 +25,12 @@ def test_goal_table_finds_the_first_goal_that_needs_the_box_moved(task):
     assert rows[4]["object_shift_m"] > 0.3
 
 
-class Replay:
+def Replay(actions, open_hand=False):
     """Plays the demonstration's actions open loop; ``open_hand`` keeps the fingers open."""
-
-    def __init__(self, actions, open_hand=False):
-        self.actions, self.open_hand, self.t = actions, open_hand, 0
-
-    def __call__(self, td: TensorDictBase) -> TensorDictBase:
-        a = self.actions[min(self.t, len(self.actions) - 1)].clone()
-        if self.open_hand:
-            a[7:9] = 1.0
-        self.t += 1
-        td.set("action", a.reshape(td.batch_size + a.shape))
-        return td
+    if open_hand:
+        actions = actions.clone()
+        actions[:, 7:9] = 1.0
+    return DemoReplay(actions)
 
 
 def _env(task):
@@ -59,10 +51,11 @@ def test_probe_sees_no_grasp_with_an_open_hand(task):
     assert s["goals_reached"] == 4 and s["stall_goal"] == 4  # goal 3 needs no grasp, goal 4 does
 
 
-def test_cli_writes_the_goal_table(tmp_path, capsys):
-    out = main(["--obs-dim", "268", "--json", str(tmp_path / "d.json")])
+def test_cli_writes_the_goal_table_and_the_demo_trace(tmp_path, capsys):
+    out = main(["--obs-dim", "268", "--json", str(tmp_path / "d.json"), "--plot", str(tmp_path / "p.png")])
     assert len(out["goals"]) == 12 and out["probes"] == []
     assert (tmp_path / "d.json").exists() and "box shift" in capsys.readouterr().out
+    assert (tmp_path / "p.png").stat().st_size > 10_000
 
 
 def test_experience_summary_counts_grasp_transitions_and_skips_demo_rows():

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 from typing import Callable, Optional, Sequence
 
 import numpy as np
@@ -186,8 +187,6 @@ def _probe_with_task(path):
 
 def _recipe_task(obs_dim: int):
     """The task of ``recipes/sr_dcil_fetch.py`` on its defaults (needs the repository's recipes/)."""
-    from pathlib import Path
-
     from hydra import compose, initialize_config_dir
 
     import srdcil.config  # noqa: F401  (registers the schema)
@@ -199,6 +198,52 @@ def _recipe_task(obs_dim: int):
     with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
         cfg = compose(config_name="sr_dcil_fetch", overrides=[f"env.options.obs_dim={obs_dim}"])
     return make_task(cfg.env)
+
+
+class DemoReplay:
+    """A policy that plays the demonstration's actions open loop (the probe's reference)."""
+
+    def __init__(self, actions: torch.Tensor):
+        self.actions, self.t = actions, 0
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        a = self.actions[min(self.t, len(self.actions) - 1)]
+        self.t += 1
+        td.set("action", a.reshape(*td.batch_size, -1).clone())
+        return td
+
+
+def plot_probes(traces: dict, out) -> None:
+    """One column per trace (``{label: grasp_probe steps}``): gripper-box distance and finger
+    opening (top), the box's rise and the goal index pursued (bottom), vs env steps."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, len(traces), figsize=(4.6 * len(traces), 6), squeeze=False, sharey="row")
+    for col, (label, steps) in enumerate(traces.items()):
+        t = np.arange(1, len(steps) + 1)
+        z = np.array([r["object_z"] for r in steps])
+        top, bot = axes[0, col], axes[1, col]
+        top.plot(t, [r["gripper_object_m"] for r in steps], label="gripper-box distance (m)")
+        top.plot(t, [r["finger_opening_m"] for r in steps], label="finger opening (m)")
+        touch = [r["touch_left"] and r["touch_right"] for r in steps]
+        top.fill_between(t, 0, 1, where=touch, color="tab:green", alpha=0.2, transform=top.get_xaxis_transform(),
+                         label="both fingers on the box")
+        top.axhline(NEAR_M, color="grey", lw=0.6, ls=":")
+        top.set_title(label, fontsize=9)
+        bot.plot(t, z - np.minimum.accumulate(z), color="tab:orange", label="box rise (m)")
+        bot.set_xlabel("env step of the chained evaluation")
+        ax2 = bot.twinx()
+        ax2.step(t, [r["goal_idx"] for r in steps], color="tab:purple", where="post", alpha=0.7, label="goal index")
+        ax2.set_ylabel("goal index pursued")
+        if col == 0:
+            top.legend(fontsize=7, loc="upper right")
+            bot.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
 
 
 def _print_table(rows: Sequence[dict]) -> None:
@@ -213,13 +258,15 @@ def main(argv: Sequence[str] | None = None) -> dict:
     p.add_argument("ckpts", nargs="*", help="Fetch training checkpoints to probe (none: the goal table only)")
     p.add_argument("--obs-dim", type=int, default=604, help="observation layout of the goal table's task")
     p.add_argument("--json", default=None, help="write the table and the probes' summaries to this file")
+    p.add_argument("--plot", default=None, help="PNG of the probes' traces beside the demonstration's replay")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    probes, task = [], None
+    probes, task, traces = [], None, {}
     for c in args.ckpts:
         agent_task, res = _probe_with_task(c)
         task = task or agent_task
         probes.append(res["summary"])
+        traces[f"{Path(c).parent.name}/{Path(c).name}: {res['summary']['env_steps']:,} env steps"] = res["steps"]
     if task is None:
         task = _recipe_task(args.obs_dim)
     rows = goal_table(task)
@@ -231,6 +278,12 @@ def main(argv: Sequence[str] | None = None) -> dict:
             if k != "checkpoint":
                 print(f"  {k}: {v}")
     out = {"goals": rows, "probes": probes}
+    if args.plot:
+        from srdcil.builders import make_env
+
+        demo = grasp_probe(make_env(task, 1, "cpu", ags=False, ags_k=2), DemoReplay(task.demo.actions))
+        plot_probes({"the demonstration's actions, replayed": demo["steps"], **traces}, args.plot)
+        print(f"wrote {args.plot}")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(out, f, indent=1)
