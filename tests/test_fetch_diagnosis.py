@@ -79,3 +79,11 @@ def test_experience_summary_counts_grasp_transitions_and_skips_demo_rows():
     hover["is_demo"][:] = False
     s = experience_summary(hover, rest)
     assert s["both_fingers_touch"] == 0 and s["box_lifted"] == 0 and s["at_box"] > 0  # hand on the box, before the lift
+
+
+def test_scripted_controller_grasps_without_and_with_action_noise():
+    from srdcil.envs.fetch.diagnosis import scripted_grasp_robustness
+
+    r = scripted_grasp_robustness([0.0, 0.1], trials=1)
+    assert [x["sigma"] for x in r] == [0.0, 0.1]
+    assert all(x["lifted"] == 1.0 and x["task_success"] == 1.0 for x in r)

@@ -12,6 +12,8 @@ Two views, both printed by ``python -m srdcil.envs.fetch.diagnosis [CKPT]``:
   at the box, holds it between both fingers, and lifts it.
 * :func:`experience_summary` (a checkpoint's replay buffer): how much of the agent's own experience
   was spent on each goal, at the box, touching it with both fingers, with the box risen.
+* :func:`scripted_grasp_robustness` (the scene): the scripted controller under action noise, i.e.
+  whether grasping in this scene needs a precision a learning agent is unlikely to have.
 """
 from __future__ import annotations
 
@@ -200,6 +202,27 @@ def _recipe_task(obs_dim: int):
     return make_task(cfg.env)
 
 
+def scripted_grasp_robustness(sigmas: Sequence[float], trials: int = 6, seed: int = 0) -> list[dict]:
+    """Is the scene's grasp forgiving? The scripted controller that made the demonstration, run
+    ``trials`` times per noise level σ with N(0, σ²) added to every action dimension (closed loop:
+    the controller corrects the drift). Per σ: ``lifted`` (runs whose box rose more than 0.2 m, i.e.
+    was grasped and carried up) and ``task_success`` (box in the compartment), as fractions."""
+    from .scripted_demo import generate
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for sigma in sigmas:
+        lifted = success = 0
+        for _ in range(int(trials)):
+            rec = generate(action_noise=float(sigma), rng=rng)
+            z = rec["achieved_goals"][:, 5]
+            lifted += int((z - np.minimum.accumulate(z)).max() > 0.2)
+            success += int(rec["success_step"] is not None)
+        out.append({"sigma": float(sigma), "trials": int(trials), "lifted": lifted / trials,
+                    "task_success": success / trials})
+    return out
+
+
 class DemoReplay:
     """A policy that plays the demonstration's actions open loop (the probe's reference)."""
 
@@ -259,6 +282,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     p.add_argument("--obs-dim", type=int, default=604, help="observation layout of the goal table's task")
     p.add_argument("--json", default=None, help="write the table and the probes' summaries to this file")
     p.add_argument("--plot", default=None, help="PNG of the probes' traces beside the demonstration's replay")
+    p.add_argument("--scripted-noise", type=float, nargs="+", default=None, metavar="SIGMA",
+                   help="also run the scripted controller with N(0, SIGMA^2) action noise: does the grasp survive?")
+    p.add_argument("--trials", type=int, default=6, help="runs per noise level (default 6)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     probes, task, traces = [], None, {}
@@ -278,6 +304,12 @@ def main(argv: Sequence[str] | None = None) -> dict:
             if k != "checkpoint":
                 print(f"  {k}: {v}")
     out = {"goals": rows, "probes": probes}
+    if args.scripted_noise:
+        out["scripted_noise"] = scripted_grasp_robustness(args.scripted_noise, args.trials)
+        print("\nthe scripted controller with action noise (closed loop):")
+        for r in out["scripted_noise"]:
+            print(f"  sigma {r['sigma']:.2f}: box lifted > 0.2 m in {r['lifted']:.0%}, "
+                  f"in the compartment in {r['task_success']:.0%} of {r['trials']} runs")
     if args.plot:
         from srdcil.builders import make_env
 

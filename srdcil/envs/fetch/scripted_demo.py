@@ -168,8 +168,13 @@ def _contacts(env) -> set:
     return out
 
 
-def generate(route: Optional[list[Waypoint]] = None, verbose: bool = False, trace: tuple = ()):
-    """Run the scripted controller from reset. Returns a dict of recorded arrays and info."""
+def generate(route: Optional[list[Waypoint]] = None, verbose: bool = False, trace: tuple = (),
+             action_noise: float = 0.0, rng: Optional[np.random.Generator] = None):
+    """Run the scripted controller from reset. Returns a dict of recorded arrays and info.
+
+    ``action_noise`` > 0 adds N(0, action_noise²) to every action dimension (the finger commands
+    too) before clipping to [-1, 1]; the controller corrects the resulting drift (closed loop)."""
+    rng = rng if rng is not None else np.random.default_rng(0)
     env = FetchShelfEnv(obs_dim=OBS_DIM_FULL)
     obs = env.reset()
     ctl = ScriptedController(env)
@@ -202,6 +207,8 @@ def generate(route: Optional[list[Waypoint]] = None, verbose: bool = False, trac
                 carrot = target if dist <= wp.carrot else grip + delta * (wp.carrot / dist)
                 q_des = ctl.ik(q, carrot, wp.mode, wp.posture)
             a = ctl.action(q_des, wp.gripper, wp.gain)
+            if action_noise > 0:
+                a = np.clip(a + action_noise * rng.standard_normal(a.shape), -1.0, 1.0)
             obs, r, terminated, _, info = env.step(a)
             rec["actions"].append(a)
             rec["states"].append(env.compact_state())
