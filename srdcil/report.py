@@ -67,7 +67,7 @@ import yaml
 
 DEFAULT_N_GOALS = 17
 DEFAULT_BUDGETS = (25_000, 50_000, 75_000, 100_000)
-PREFERRED_ORDER = ("vanilla", "db", "db_ags", "db_ags_paper", "vc", "vc_ags", "dcil_ii")
+PREFERRED_ORDER = ("vanilla", "db", "db_ags", "db_ags_paper", "db_ags_recompute", "vc", "vc_ags", "vc_ags_paper", "dcil_ii")
 CSV_COLUMNS = ("method", "seed", "status", "budget_env_steps", "last_env_steps", "n_evals",
                "first_chain_success_step", "first_strict_success_step", "best_goals_reached",
                "final_goals_reached", "n_goals", "stop_reason", "wall_s", "run_dir")
