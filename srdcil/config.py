@@ -244,6 +244,8 @@ def validate(cfg: DictConfig) -> DictConfig:
            c.ags.threshold_window, ">= 1 or null (the paper's running max)")
     _check(c.ags.recompute_interval is None or c.ags.recompute_interval >= 1, "ags.recompute_interval",
            c.ags.recompute_interval, ">= 1 or null (never)")
+    _check(c.ags.recompute_interval is None or c.variant.endswith("_ags"), "ags.recompute_interval",
+           c.ags.recompute_interval, f"null for variant {c.variant} (no AGS, no thresholds to re-read)")
     _check(c.ags.recompute_interval is None or c.ags.threshold_window is None, "ags.recompute_interval",
            c.ags.recompute_interval, "null while ags.threshold_window is set (re-reading applies to the paper's "
            "running max: set ags.threshold_window=null)")

@@ -189,6 +189,7 @@ def test_recomputed_thresholds_rule_learns_and_rereads_theta_every_interval(tmp_
     assert len(calls) == r["env_steps"] // 120  # once per interval crossed (12 env steps per round)
     assert calls[-1][0] > 0  # rows from stored successes
     assert max(int((~torch.isnan(th)).sum()) for _, th in calls) >= 3  # θ for most goals
-    with pytest.raises(Exception, match="recompute_interval"):
-        train(config("sr_dcil_dubins", reduced(wiggle_demo) + ["method=db_ags", "ags.recompute_interval=100"]),
-              run_dir=tmp_path / "bad")
+    for bad in (["method=db_ags", "ags.recompute_interval=100"],  # windows on
+                ["method=db", "ags.threshold_window=null", "ags.recompute_interval=100"]):  # no AGS
+        with pytest.raises(Exception, match="recompute_interval"):
+            train(config("sr_dcil_dubins", reduced(wiggle_demo) + bad), run_dir=tmp_path / "bad")
