@@ -87,3 +87,15 @@ def test_scripted_controller_grasps_without_and_with_action_noise():
     r = scripted_grasp_robustness([0.0, 0.1], trials=1)
     assert [x["sigma"] for x in r] == [0.0, 0.1]
     assert all(x["lifted"] == 1.0 and x["task_success"] == 1.0 for x in r)
+
+
+def test_demo_start_probe_starts_at_the_demonstrated_state_of_a_goal(task):
+    from srdcil.envs.fetch.diagnosis import demo_start_probe
+
+    t3 = int(task.goals.demo_indices[2])  # goal 3 starts where the demo reached goal 2 (step 45)
+    s = demo_start_probe(task, DemoReplay(task.demo.actions[t3:]), 3, max_steps=60)["summary"]
+    assert s["start_goal"] == 3 and s["goals_reached"] >= 2 and s["grasp_and_lift"]  # goals 3, 4, ...
+    s = demo_start_probe(task, Replay(task.demo.actions[t3:], open_hand=True), 3, max_steps=60)["summary"]
+    assert s["goals_reached"] == 1 and s["stall_goal"] == 4 and not s["grasp_and_lift"]
+    with pytest.raises(ValueError, match="goal_index"):
+        demo_start_probe(task, DemoReplay(task.demo.actions), 12)

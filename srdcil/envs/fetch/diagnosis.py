@@ -9,7 +9,8 @@ Two views, both printed by ``python -m srdcil.envs.fetch.diagnosis [CKPT]``:
 * :func:`grasp_probe` (a policy): the deterministic chained evaluation from the single start state,
   reading the simulator at every step: distance gripper-box, finger opening, which fingers touch the
   box, the finger command, the box's lift. Its summary says whether the policy closes the fingers
-  at the box, holds it between both fingers, and lifts it.
+  at the box, holds it between both fingers, and lifts it. :func:`demo_start_probe` does the same
+  from the demonstrated state where the previous goal was reached (DCIL-II's reset).
 * :func:`experience_summary` (a checkpoint's replay buffer): how much of the agent's own experience
   was spent on each goal, at the box, touching it with both fingers, with the box risen.
 * :func:`scripted_grasp_robustness` (the scene): the scripted controller under action noise, i.e.
@@ -163,8 +164,28 @@ def experience_summary(rows: TensorDictBase, rest_z: float) -> dict:
 
 
 def probe_checkpoint(path) -> dict:
-    """:func:`grasp_probe` of a Fetch training checkpoint's actor (CPU), with its AGS thresholds."""
+    """:func:`grasp_probe` of a Fetch training checkpoint's actor (CPU), with its AGS thresholds;
+    the loaded checkpoint (:func:`srdcil.plots.load_agent`) is under ``"agent"``."""
     return _probe_with_task(path)[1]
+
+
+def demo_start_probe(task, actor, goal_index: int, *, max_steps: Optional[int] = None) -> dict:
+    """:func:`grasp_probe` of ``actor`` started, as DCIL-II would, at the demonstrated state where
+    goal ``goal_index`` - 1 was reached (s_0 for goal 0), pursuing goal ``goal_index``; the chain
+    then goes on as usual. Tells apart "cannot do goal i at all" from "can do it from the
+    demonstrated state, but the chain from s_0 arrives elsewhere". ``max_steps`` defaults to one
+    goal's budget."""
+    from srdcil.builders import demo_reset_transforms, make_env
+
+    n = len(task.goals)
+    if not 0 <= int(goal_index) < n:
+        raise ValueError(f"goal_index must be in [0, {n - 1}], got {goal_index}")
+    reset = demo_reset_transforms(task, "cpu")
+    reset[0].sample_goal_indices = lambda k: torch.full((k,), int(goal_index), dtype=torch.long)
+    env = make_env(task, 1, "cpu", ags=False, ags_k=2, extra_transforms=reset)
+    out = grasp_probe(env, actor, max_steps=max_steps or task.max_steps_per_goal)
+    out["summary"] = {"start_goal": int(goal_index), **out["summary"]}
+    return out
 
 
 def _probe_with_task(path):
@@ -180,6 +201,7 @@ def _probe_with_task(path):
                    thresholds=agent.thresholds.clone())
     out = grasp_probe(env, agent.actor)
     out["summary"] = {"checkpoint": str(path), "env_steps": agent.frames, **out["summary"]}
+    out["agent"] = agent
     replay = torch.load(path, map_location="cpu", weights_only=False).get("replay")
     if isinstance(replay, dict) and "rows" in replay:
         rest_z = float(agent.task.demo.achieved_goals[:, 5].min())  # the box on the table
@@ -285,12 +307,18 @@ def main(argv: Sequence[str] | None = None) -> dict:
     p.add_argument("--scripted-noise", type=float, nargs="+", default=None, metavar="SIGMA",
                    help="also run the scripted controller with N(0, SIGMA^2) action noise: does the grasp survive?")
     p.add_argument("--trials", type=int, default=6, help="runs per noise level (default 6)")
+    p.add_argument("--from-demo-goal", type=int, nargs="+", default=None, metavar="I",
+                   help="also probe each checkpoint started at the demonstrated start state of goal I")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     probes, task, traces = [], None, {}
     for c in args.ckpts:
         agent_task, res = _probe_with_task(c)
         task = task or agent_task
+        for gi in args.from_demo_goal or ():
+            d = demo_start_probe(agent_task, res["agent"].actor, gi)["summary"]
+            res["summary"][f"from_demo_start_of_goal_{gi}"] = {k: d[k] for k in (
+                "goals_reached", "stall_goal", "min_gripper_object_m", "steps_both_fingers_touch", "max_lift_m")}
         probes.append(res["summary"])
         traces[f"{Path(c).parent.name}/{Path(c).name}: {res['summary']['env_steps']:,} env steps"] = res["steps"]
     if task is None:
