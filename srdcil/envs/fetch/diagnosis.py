@@ -258,9 +258,12 @@ class DemoReplay:
         return td
 
 
-def plot_probes(traces: dict, out) -> None:
+def plot_probes(traces: dict, out, n_goals: Optional[int] = None) -> None:
     """One column per trace (``{label: grasp_probe steps}``): gripper-box distance and finger
-    opening (top), the box's rise and the goal index pursued (bottom), vs env steps."""
+    opening (top), the box's rise and the goal index pursued (bottom, one scale 0..``n_goals`` - 1
+    for all columns), vs env steps."""
+    if n_goals is None:
+        n_goals = 1 + max(r["goal_idx"] for steps in traces.values() for r in steps)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -283,6 +286,7 @@ def plot_probes(traces: dict, out) -> None:
         ax2 = bot.twinx()
         ax2.step(t, [r["goal_idx"] for r in steps], color="tab:purple", where="post", alpha=0.7, label="goal index")
         ax2.set_ylabel("goal index pursued")
+        ax2.set_ylim(-0.3, n_goals - 0.7)
         if col == 0:
             top.legend(fontsize=7, loc="upper right")
             bot.legend(fontsize=7, loc="upper left")
@@ -342,7 +346,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         from srdcil.builders import make_env
 
         demo = grasp_probe(make_env(task, 1, "cpu", ags=False, ags_k=2), DemoReplay(task.demo.actions))
-        plot_probes({"the demonstration's actions, replayed": demo["steps"], **traces}, args.plot)
+        plot_probes({"the demonstration's actions, replayed": demo["steps"], **traces}, args.plot, len(task.goals))
         print(f"wrote {args.plot}")
     if args.json:
         with open(args.json, "w") as f:
