@@ -32,11 +32,13 @@ def _metrics(run_dir: Path) -> list[dict]:
     return [{k: m.get(k) for k in ("env_steps", *KEYS)} for m in rows]
 
 
-@pytest.mark.parametrize("recipe,over", [("sr_dcil_dubins", ["method=db_ags"]), ("dcil_ii_dubins", [])],
-                         ids=["db_ags", "dcil_ii"])
+@pytest.mark.parametrize("recipe,over", [
+    ("sr_dcil_dubins", ["method=db_ags", "ags.threshold_window=240"]),
+    ("sr_dcil_dubins", ["method=db_ags_recompute", "ags.recompute_interval=120"]),
+    ("dcil_ii_dubins", ["ags.threshold_window=240"])], ids=["db_ags", "db_ags_recompute", "dcil_ii"])
 def test_resumed_run_equals_the_unbroken_run(recipe, over, tmp_path, wiggle_demo):
     base = reduced(wiggle_demo) + over + ["stop_on_chain_success=false", "eval.interval=120",
-                                         "checkpoint.interval=100000", "resume=auto", "ags.threshold_window=240"]
+                                         "checkpoint.interval=100000", "resume=auto"]
     full = train(config(recipe, base + ["collector.total_frames=600"]), run_dir=tmp_path / "full")
     # the same run in two legs: stopped at 360 env steps, then resumed by the same command to 600
     train(config(recipe, base + ["collector.total_frames=360"]), run_dir=tmp_path / "legs")
