@@ -2,10 +2,15 @@
 
     python -m srdcil.report RESULTS_DIR [--out DIR] [--budget N] [--budgets 25k 50k 75k 100k]
                             [--n-goals 17] [--methods vanilla db db_ags ...] [--grid-step 1000] [--reps 2000]
+                            [--label method,precision]
 
 Reads every directory under RESULTS_DIR that holds a ``metrics.jsonl`` (``<method>_s<seed>/`` or
 nested deeper; ``.hydra`` is skipped) and writes ``runs.csv``, ``ablation.png``, ``iqm.png``,
 ``profiles.png``, ``summary.md`` and ``summary.json``.
+
+Runs are grouped by their config's ``method``; ``--label method,precision`` groups them by several
+config entries instead (dotted keys; a run lacking an entry is labelled without it), e.g. to
+compare the same method at two precisions: ``db_ags/fp32`` against ``db_ags/bf16``.
 
 What is measured
 ----------------
@@ -99,12 +104,22 @@ def _as_int(x):
         return None
 
 
-def read_run(path, default_n_goals: int = DEFAULT_N_GOALS) -> dict:
+def _cfg_get(cfg: dict, dotted: str):
+    node = cfg
+    for k in dotted.split("."):
+        if not isinstance(node, dict) or k not in node:
+            return None
+        node = node[k]
+    return node
+
+
+def read_run(path, default_n_goals: int = DEFAULT_N_GOALS, label=("method",)) -> dict:
     """Summary of one run directory, computed from its ``metrics.jsonl`` (result.json only cross-checks).
 
     Returns a dict with the ``CSV_COLUMNS`` fields (``run_dir`` as an absolute Path), ``evals`` (a list of
     ``(env_steps, goals_reached, chain_success, strict_chain_success, goals_norm)`` in step order),
-    ``result`` (the parsed result.json or None) and ``warnings`` (strings).
+    ``result`` (the parsed result.json or None) and ``warnings`` (strings). ``label``: the config entries
+    whose values, joined by "/", name the run's group (the ``method`` column); default: ``method`` alone.
     """
     path = Path(path).resolve()
     warnings: list[str] = []
@@ -112,6 +127,9 @@ def read_run(path, default_n_goals: int = DEFAULT_N_GOALS) -> dict:
         path / ".hydra" / "config.yaml")
     m = _DIR_RE.match(path.name)
     method = cfg.get("method") or (m.group("method") if m else path.name)
+    if tuple(label) != ("method",):
+        parts = [method if k == "method" else _cfg_get(cfg, k) for k in label]
+        method = "/".join(str(v) for v in parts if v is not None) or method
     seed = _as_int(cfg.get("seed"))
     if seed is None and m:
         seed = int(m.group("seed"))
@@ -197,12 +215,13 @@ def method_order(methods, preferred=PREFERRED_ORDER) -> list[str]:
     return [m for m in preferred if m in methods] + sorted(methods - set(preferred))
 
 
-def collect(results_dir, default_n_goals: int = DEFAULT_N_GOALS, methods=None, verbose: bool = True) -> list[dict]:
+def collect(results_dir, default_n_goals: int = DEFAULT_N_GOALS, methods=None, verbose: bool = True,
+            label=("method",)) -> list[dict]:
     """All runs under ``results_dir`` (see ``read_run``), ordered by method then seed.
 
-    ``methods``: the methods to keep, in this order (default: all, preferred order). Warnings are printed.
+    ``methods``: the methods (labels) to keep, in this order (default: all, preferred order). Warnings are printed.
     """
-    runs = [read_run(p, default_n_goals) for p in find_run_dirs(results_dir)]
+    runs = [read_run(p, default_n_goals, label) for p in find_run_dirs(results_dir)]
     order = list(methods) if methods else method_order(r["method"] for r in runs)
     runs = [r for r in runs if r["method"] in order]
     runs.sort(key=lambda r: (order.index(r["method"]), r["seed"] is None, r["seed"] or 0, str(r["run_dir"])))
@@ -527,6 +546,8 @@ def summarise(by_method: dict, budget, budgets, iqm=None) -> dict:
              "median_steps_to_solve": censored_quantile(steps, 0.5),
              "q25_steps_to_solve": censored_quantile(steps, 0.25),
              "q75_steps_to_solve": censored_quantile(steps, 0.75),
+             "median_wall_s": (float(np.median(walls)) if (walls := [r["wall_s"] for r in runs if r["status"] ==
+                               "finished" and r["wall_s"] is not None]) else None),
              "unsolved_with_smaller_budget": [r["seed"] for r in runs if r["first_chain_success_step"] is None
                                              and (r["budget_env_steps"] or budget) < budget],
              "iqm": {}}
@@ -541,13 +562,14 @@ def summarise(by_method: dict, budget, budgets, iqm=None) -> dict:
 
 def _summary_markdown(summary: dict, budget, budgets, have_rliable: bool, notes) -> tuple[str, str]:
     head = ["method", "n", f"solved ≤{_fmt_steps(budget)}", "solved strictly", "median steps to solve",
-            "IQR steps to solve"] + [f"IQM goals @{_fmt_steps(b)} [95% CI]" for b in budgets]
+            "IQR steps to solve", "median wall time"] + [f"IQM goals @{_fmt_steps(b)} [95% CI]" for b in budgets]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for m, d in summary.items():
         n = f"{d['n']}" + (f" ({d['n_incomplete']} incomplete)" if d["n_incomplete"] else "")
         iqr = f"[{_fmt_steps(d['q25_steps_to_solve'])}, {_fmt_steps(d['q75_steps_to_solve'])}]"
         cells = [m, n, f"{d['solved']}/{d['n']}", f"{d['solved_strict']}/{d['n']}",
-                 _fmt_steps(d["median_steps_to_solve"]), iqr]
+                 _fmt_steps(d["median_steps_to_solve"]), iqr,
+                 "—" if d["median_wall_s"] is None else f"{d['median_wall_s'] / 60:.1f} min"]
         for b in budgets:
             e = d["iqm"][str(b)]
             cells.append("—" if e["iqm"] is None else f"{e['iqm']:.2f} [{e['ci_low']:.2f}, {e['ci_high']:.2f}]")
@@ -563,6 +585,8 @@ def _summary_markdown(summary: dict, budget, budgets, have_rliable: bool, notes)
         "reached (goals / n goals) at each budget, with 95% percentile stratified-bootstrap CIs from rliable."
         if have_rliable else "- IQM columns are empty: rliable is not installed (pip install rliable).",
         f"- {LOCF_RULE} The score of a run at a budget is its last evaluation at or before it.",
+        "- Median wall time: over the finished runs, every leg of a resumed run counted; it includes the env "
+        "steps a run spent after its first success, and depends on the machine and its load.",
     ] + [f"- {n}" for n in notes]
     return text, "\n".join(explain)
 
@@ -582,7 +606,8 @@ def _jsonable(x):
 
 
 def write_report(results_dir, out=None, budget=None, budgets=DEFAULT_BUDGETS, n_goals: int = DEFAULT_N_GOALS,
-                 methods=None, grid_step: int = 1000, reps: int = 2000, seed: int = 0, verbose: bool = True) -> dict:
+                 methods=None, grid_step: int = 1000, reps: int = 2000, seed: int = 0, verbose: bool = True,
+                 label=("method",)) -> dict:
     """Read the runs under ``results_dir`` and write the report files into ``out`` (default: results_dir).
 
     Returns the summary (as written to summary.json) plus ``files``: the paths written.
@@ -591,7 +616,7 @@ def write_report(results_dir, out=None, budget=None, budgets=DEFAULT_BUDGETS, n_
     out = Path(out) if out is not None else results_dir
     out.mkdir(parents=True, exist_ok=True)
     say = print if verbose else (lambda *a, **k: None)
-    runs = collect(results_dir, n_goals, methods, verbose=verbose)
+    runs = collect(results_dir, n_goals, methods, verbose=verbose, label=label)
     if not runs:
         raise SystemExit(f"no run directories (with a metrics.jsonl) under {results_dir}")
     by_method: dict[str, list] = {}
@@ -678,11 +703,15 @@ def main(argv=None) -> None:
     p.add_argument("--grid-step", type=_parse_steps, default=1000, help="spacing of the curve grid (env steps)")
     p.add_argument("--reps", type=int, default=2000, help="bootstrap replications (default 2000)")
     p.add_argument("--seed", type=int, default=0, help="bootstrap seed (default 0)")
+    p.add_argument("--label", default="method",
+                   help="config entries that name a run's group, comma-separated (default: method; "
+                        "e.g. method,precision)")
     a = p.parse_args(argv)
     split = lambda xs: [x for s in xs for x in s.split(",") if x]  # noqa: E731
     budgets = [_parse_steps(b) for b in split(a.budgets)] if a.budgets else DEFAULT_BUDGETS
     write_report(a.results_dir, out=a.out, budget=a.budget, budgets=budgets, n_goals=a.n_goals,
-                 methods=split(a.methods) if a.methods else None, grid_step=a.grid_step, reps=a.reps, seed=a.seed)
+                 methods=split(a.methods) if a.methods else None, grid_step=a.grid_step, reps=a.reps, seed=a.seed,
+                 label=tuple(k for k in a.label.split(",") if k))
 
 
 if __name__ == "__main__":

@@ -207,3 +207,30 @@ def test_incomplete_run_is_not_carried_past_its_last_evaluation():
     assert score_at(run, 1000) == pytest.approx(0.3) and score_at(run, 50000) is None
     run["status"] = "finished"
     assert score_at(run, 50000) == pytest.approx(0.3)  # a finished run is carried (LOCF)
+
+
+def test_label_groups_runs_by_config_entries(tmp_path, capsys):
+    """--label method,precision: the same method at two precisions is two groups; a run whose config lacks
+    the entry is labelled by its method alone; the summary's median wall time is over finished runs."""
+    cfg = lambda seed, **kw: {"seed": seed, "method": "db_ags", "collector": {"total_frames": 20_000}, **kw}  # noqa
+    res = lambda step, wall: {"first_chain_success_step": step, "best_goals_reached": 5, "env_steps": step,  # noqa
+                              "wall_s": wall}
+    _write_run(tmp_path / "a_s0", [(0, 0, 0, 0), (5000, 5, 1, 1)], cfg(0, precision="fp32"), res(5000, 120.0))
+    _write_run(tmp_path / "a_s1", [(0, 0, 0, 0), (10000, 5, 1, 1)], cfg(1, precision="fp32"), res(10000, 300.0))
+    _write_run(tmp_path / "b_s0", [(0, 0, 0, 0), (5000, 5, 1, 1)], cfg(0, precision="bf16"), res(5000, 60.0))
+    _write_run(tmp_path / "b_s1", [(0, 0, 0, 0), (5000, 3, 0, 0)], cfg(1, precision="bf16"), None)  # running
+    _write_run(tmp_path / "c_s0", [(0, 0, 0, 0), (5000, 5, 1, 1)], cfg(0), res(5000, 90.0))  # no precision entry
+    s = report.write_report(tmp_path, out=tmp_path / "rep", budgets=(10_000,), n_goals=N, reps=50,
+                            label=("method", "precision"))
+    m = s["methods"]
+    assert set(m) == {"db_ags/fp32", "db_ags/bf16", "db_ags"}
+    assert m["db_ags/fp32"]["solved"] == 2 and m["db_ags/fp32"]["median_steps_to_solve"] == 7500
+    assert m["db_ags/fp32"]["median_wall_s"] == 210.0
+    assert m["db_ags/bf16"]["solved"] == 1 and m["db_ags/bf16"]["n_incomplete"] == 1
+    assert m["db_ags/bf16"]["median_wall_s"] == 60.0  # the incomplete run has no wall time yet
+    assert "db_ags/bf16" in (tmp_path / "rep" / "summary.md").read_text()
+    rows = list(csv.DictReader(open(tmp_path / "rep" / "runs.csv")))
+    assert sorted(r["method"] for r in rows) == ["db_ags", "db_ags/bf16", "db_ags/bf16", "db_ags/fp32", "db_ags/fp32"]
+    # the default groups by method only: all five runs are db_ags
+    s = report.write_report(tmp_path, out=tmp_path / "rep2", budgets=(10_000,), n_goals=N, reps=50, verbose=False)
+    assert list(s["methods"]) == ["db_ags"] and s["methods"]["db_ags"]["n"] == 5
