@@ -195,6 +195,8 @@ def read_run(path, default_n_goals: int = DEFAULT_N_GOALS, label=("method",)) ->
         "best_goals_reached": best, "final_goals_reached": evals[-1][1] if evals else None,
         "n_goals": n_goals, "stop_reason": (result or {}).get("stop_reason"),
         "wall_s": round(float(wall), 1) if isinstance(wall, (int, float)) and math.isfinite(wall) else None,
+        # older result.json files (no wall_s_this_leg) give only the last leg's wall time after a resume
+        "wall_all_legs": result is not None and "wall_s_this_leg" in result,
         "run_dir": path, "evals": evals, "result": result, "warnings": warnings,
     }
 
@@ -546,8 +548,8 @@ def summarise(by_method: dict, budget, budgets, iqm=None) -> dict:
              "median_steps_to_solve": censored_quantile(steps, 0.5),
              "q25_steps_to_solve": censored_quantile(steps, 0.25),
              "q75_steps_to_solve": censored_quantile(steps, 0.75),
-             "median_wall_s": (float(np.median(walls)) if (walls := [r["wall_s"] for r in runs if r["status"] ==
-                               "finished" and r["wall_s"] is not None]) else None),
+             "median_wall_s": (float(np.median(walls)) if (walls := [r["wall_s"] for r in runs if r.get("wall_all_legs")
+                                                          and r["wall_s"] is not None]) else None),
              "unsolved_with_smaller_budget": [r["seed"] for r in runs if r["first_chain_success_step"] is None
                                              and (r["budget_env_steps"] or budget) < budget],
              "iqm": {}}
@@ -585,8 +587,9 @@ def _summary_markdown(summary: dict, budget, budgets, have_rliable: bool, notes)
         "reached (goals / n goals) at each budget, with 95% percentile stratified-bootstrap CIs from rliable."
         if have_rliable else "- IQM columns are empty: rliable is not installed (pip install rliable).",
         f"- {LOCF_RULE} The score of a run at a budget is its last evaluation at or before it.",
-        "- Median wall time: over the finished runs, every leg of a resumed run counted; it includes the env "
-        "steps a run spent after its first success, and depends on the machine and its load.",
+        "- Median wall time: over the finished runs whose result.json counts every leg of a resumed run (it "
+        "has wall_s_this_leg; older ones give only the last leg, so they are left out: — when none). It "
+        "includes the env steps a run spent after its first success and depends on the machine and its load.",
     ] + [f"- {n}" for n in notes]
     return text, "\n".join(explain)
 

@@ -214,12 +214,13 @@ def test_label_groups_runs_by_config_entries(tmp_path, capsys):
     the entry is labelled by its method alone; the summary's median wall time is over finished runs."""
     cfg = lambda seed, **kw: {"seed": seed, "method": "db_ags", "collector": {"total_frames": 20_000}, **kw}  # noqa
     res = lambda step, wall: {"first_chain_success_step": step, "best_goals_reached": 5, "env_steps": step,  # noqa
-                              "wall_s": wall}
+                              "wall_s": wall, "wall_s_this_leg": wall}
     _write_run(tmp_path / "a_s0", [(0, 0, 0, 0), (5000, 5, 1, 1)], cfg(0, precision="fp32"), res(5000, 120.0))
     _write_run(tmp_path / "a_s1", [(0, 0, 0, 0), (10000, 5, 1, 1)], cfg(1, precision="fp32"), res(10000, 300.0))
     _write_run(tmp_path / "b_s0", [(0, 0, 0, 0), (5000, 5, 1, 1)], cfg(0, precision="bf16"), res(5000, 60.0))
     _write_run(tmp_path / "b_s1", [(0, 0, 0, 0), (5000, 3, 0, 0)], cfg(1, precision="bf16"), None)  # running
-    _write_run(tmp_path / "c_s0", [(0, 0, 0, 0), (5000, 5, 1, 1)], cfg(0), res(5000, 90.0))  # no precision entry
+    old = {k: v for k, v in res(5000, 90.0).items() if k != "wall_s_this_leg"}
+    _write_run(tmp_path / "c_s0", [(0, 0, 0, 0), (5000, 5, 1, 1)], cfg(0), old)  # no precision entry, older format
     s = report.write_report(tmp_path, out=tmp_path / "rep", budgets=(10_000,), n_goals=N, reps=50,
                             label=("method", "precision"))
     m = s["methods"]
@@ -228,6 +229,8 @@ def test_label_groups_runs_by_config_entries(tmp_path, capsys):
     assert m["db_ags/fp32"]["median_wall_s"] == 210.0
     assert m["db_ags/bf16"]["solved"] == 1 and m["db_ags/bf16"]["n_incomplete"] == 1
     assert m["db_ags/bf16"]["median_wall_s"] == 60.0  # the incomplete run has no wall time yet
+    # a result.json without wall_s_this_leg (older code: the last leg only) does not enter the median
+    assert m["db_ags"]["median_wall_s"] is None
     assert "db_ags/bf16" in (tmp_path / "rep" / "summary.md").read_text()
     rows = list(csv.DictReader(open(tmp_path / "rep" / "runs.csv")))
     assert sorted(r["method"] for r in rows) == ["db_ags", "db_ags/bf16", "db_ags/bf16", "db_ags/fp32", "db_ags/fp32"]
