@@ -11,5 +11,10 @@ CONFIG_DIR = Path(__file__).resolve().parents[1] / "recipes" / "config"
 
 
 def recipe_config(name: str, overrides: list[str] = ()):
+    """The recipe config with ``overrides``; fp32 unless they say otherwise (the benchmarks compare against
+    fp32 updates, and their figures must not depend on whether this CPU has native bf16)."""
+    overrides = list(overrides)
+    if not any(o.startswith("precision=") for o in overrides):
+        overrides.insert(0, "precision=fp32")
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-        return compose(config_name=name, overrides=list(overrides))
+        return compose(config_name=name, overrides=overrides)

@@ -122,7 +122,9 @@ class TrainConfig:
     stop_after_success: Optional[int] = None  # env steps to go on after the first full-chain success
     compile: bool = False  # torch.compile the update step
     cudagraphs: bool = False  # capture the update step as a CUDA graph (cuda only)
-    precision: str = "fp32"  # fp32 | bf16 (autocast forward passes; fp32 weights, Adam, targets, losses)
+    # auto | fp32 | bf16 (bf16: autocast forward passes; fp32 weights, Adam, targets, losses).
+    # auto: bf16 on a CPU with native bf16 (AVX512-BF16 / AMX), fp32 elsewhere (CUDA included)
+    precision: str = "fp32"
     debug: bool = False  # user errors print their traceback too
     env: EnvConfig = field(default_factory=EnvConfig)
     collector: CollectorConfig = field(default_factory=CollectorConfig)
@@ -257,7 +259,7 @@ def validate(cfg: DictConfig) -> DictConfig:
            "csv, wandb, tensorboard or '' (none)")
     _check(c.logger.mode in ("online", "offline", "disabled"), "logger.mode", c.logger.mode,
            "online, offline or disabled")
-    _check(c.precision in ("fp32", "bf16"), "precision", c.precision, "fp32 or bf16")
+    _check(c.precision in ("auto", "fp32", "bf16"), "precision", c.precision, "auto, fp32 or bf16")
     if c.cudagraphs and not str(c.device).startswith("cuda"):
         raise ConfigError(f"cudagraphs=true needs device=cuda (device={c.device!r})")
     return cfg

@@ -224,6 +224,7 @@ class _Run:
                 # the loop proper (collection + replay + updates), warm-up and final eval excluded
                 "env_steps_per_s_after_warmup": ((p.frames - p.f_warm) / (p.t_end - p.t_warm)
                                                  if p.t_warm is not None else None),
+                "precision": self.updater.precision,  # as resolved on this machine (precision=auto)
                 "ags_thresholds": self.gst.ags_thresholds.tolist()}
 
 

@@ -31,9 +31,21 @@ def bf16_supported(device: torch.device | str = "cpu") -> bool:
 
 
 def resolve_precision(precision: str, device) -> str:
-    """``fp32`` or ``bf16``; ``bf16`` where it is not native falls back to ``fp32`` with a message."""
-    if precision not in ("fp32", "bf16"):
-        raise ValueError(f"precision must be 'fp32' or 'bf16', got {precision!r}")
+    """``fp32`` or ``bf16``; ``bf16`` where it is not native falls back to ``fp32`` with a message.
+
+    ``auto`` is ``bf16`` on a CPU with native bf16 and ``fp32`` elsewhere (with a message on a CPU without
+    it; CUDA stays fp32: bf16's effect on learning was measured on a CPU only, see the README).
+    """
+    if precision not in ("auto", "fp32", "bf16"):
+        raise ValueError(f"precision must be 'auto', 'fp32' or 'bf16', got {precision!r}")
+    if precision == "auto":
+        if torch.device(device).type != "cpu":
+            return "fp32"
+        if bf16_supported(device):
+            print("[srdcil] precision=auto: bf16 (this CPU has native bf16 matrix units; precision=fp32 to turn it off)")
+            return "bf16"
+        print("[srdcil] precision=auto: fp32 (this CPU has no native bf16 matrix units: no AVX512-BF16 / AMX)")
+        return "fp32"
     if precision == "bf16" and not bf16_supported(device):
         print(f"[srdcil] precision=bf16: this {torch.device(device).type} has no native bf16 matrix units "
               "(no AVX512-BF16 / AMX, or a CUDA device without bf16); using fp32")

@@ -40,10 +40,14 @@ def reduced(demo: Path) -> list[str]:
 
 REDUCED = [ "network.hidden=[64,64]", "env.n_envs=4", "collector.frames_per_batch=12",
     "collector.init_random_frames=200", "eval.interval=250", "stop_on_chain_success=true", "progress=false",
-    "logger.backend=", "eval.plot=false",
+    "logger.backend=", "eval.plot=false", "precision=fp32",
 ]
 
 
 def config(name: str, overrides: list[str]):
+    """The recipe config with ``overrides``; fp32 unless they say otherwise, so that a test's numbers do not
+    depend on whether this CPU has native bf16 (``precision=auto`` would pick bf16 where it is)."""
+    if not any(o.startswith("precision=") for o in overrides):
+        overrides = ["precision=fp32", *overrides]
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         return compose(config_name=name, overrides=overrides)

@@ -371,6 +371,28 @@ def test_bf16_precision_falls_back_where_not_native(monkeypatch, capsys):
         DCILUpdater(_small_loss(), precision="fp16")
 
 
+def test_precision_auto_is_bf16_only_on_a_cpu_with_native_bf16(monkeypatch, capsys):
+    import srdcil.updater as upd
+
+    monkeypatch.setattr(upd, "bf16_supported", lambda device="cpu": True)
+    assert DCILUpdater(_small_loss(), precision="auto").precision == "bf16"
+    assert "precision=auto: bf16" in capsys.readouterr().out
+    assert upd.resolve_precision("auto", "cuda") == "fp32"  # not measured on a GPU: fp32 there
+    monkeypatch.setattr(upd, "bf16_supported", lambda device="cpu": False)
+    assert DCILUpdater(_small_loss(), precision="auto").precision == "fp32"
+    assert "no native bf16" in capsys.readouterr().out
+
+
+def test_tests_pin_fp32_whatever_the_recipe_default():
+    from _helpers import config
+
+    from srdcil.config import TrainConfig
+
+    assert TrainConfig().precision == "fp32"
+    assert config("sr_dcil_dubins", []).precision == "fp32"
+    assert config("sr_dcil_dubins", ["precision=bf16"]).precision == "bf16"
+
+
 @pytest.mark.parametrize("mode", ["joint", "sequential"])
 def test_bf16_update_keeps_fp32_weights_targets_and_losses(monkeypatch, mode):
     """bf16 autocasts the forward passes only: parameters, Adam state and losses stay fp32, and the

@@ -22,6 +22,7 @@ from srdcil.tasks import make_task
 from omegaconf import OmegaConf
 
 from srdcil import checkpoint as ckpt_io
+from _helpers import config  # noqa: E402
 from srdcil.builders import get_variant, goal_transform, make_agent, make_env, make_loss_and_updater
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -30,8 +31,7 @@ GOAL = 2
 
 
 def _config(name: str, overrides: list[str]):
-    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-        return compose(config_name=name, overrides=overrides)
+    return config(name, overrides)
 
 
 def _perturb(params, gen: torch.Generator, scale: float) -> None:
