@@ -178,6 +178,12 @@ def run_size(name, dims, hidden, seconds, sequential=False, compiled=False, B=25
         _sync()
         print(f"{label}_setup_time_{name}: {time.perf_counter() - t0:.1f} s")
         methods[f"dcil_{label}"] = (lambda u: lambda: u.step(td))(up_x)
+    if bf16:  # bf16 in the recipes' update order and with V (value cloning) too
+        extra = {"dcil_vc_bf16": dcil(value=True, precision="bf16")}
+        if sequential:
+            extra["dcil_sequential_bf16"] = dcil(mode="sequential", precision="bf16")
+        for k, u in extra.items():
+            methods[k] = (lambda u: lambda: u.step(td))(u)
     for fn in methods.values():  # warm-up
         for _ in range(5):
             fn()
@@ -201,6 +207,9 @@ def run_size(name, dims, hidden, seconds, sequential=False, compiled=False, B=25
     if bf16:
         pairs.append(("dcil_bf16", "plain"))
         pairs.append(("dcil_bf16", "dcil"))
+        pairs.append(("dcil_vc_bf16", "dcil_vc"))
+        if sequential:
+            pairs.append(("dcil_sequential_bf16", "dcil_sequential"))
     for a, b in pairs:
         ratio = statistics.median(x / y for x, y in zip(rates[a], rates[b]))
         print(f"ratio_{a}_to_{b}_{name}: {ratio:.2f} x")

@@ -75,7 +75,7 @@ DEFAULT_BUDGETS = (25_000, 50_000, 75_000, 100_000)
 PREFERRED_ORDER = ("vanilla", "db", "db_ags", "db_ags_paper", "db_ags_recompute", "vc", "vc_ags", "vc_ags_paper", "dcil_ii")
 CSV_COLUMNS = ("method", "seed", "status", "budget_env_steps", "last_env_steps", "n_evals",
                "first_chain_success_step", "first_strict_success_step", "best_goals_reached",
-               "final_goals_reached", "n_goals", "stop_reason", "wall_s", "run_dir")
+               "final_goals_reached", "n_goals", "stop_reason", "wall_s", "wall_s_to_solve", "run_dir")
 LOCF_RULE = ("Runs of unequal length: a run's value at env step t is that of its last evaluation at or "
              "before t (last observation carried forward, LOCF); a run enters an average at t only once "
              "it has an evaluation at or before t.")
@@ -188,7 +188,7 @@ def read_run(path, default_n_goals: int = DEFAULT_N_GOALS, label=("method",)) ->
                 warnings.append(f"warning: run {name} ({path}): result.json has {key}={result[key]} but "
                                 f"metrics.jsonl gives {ours}; using metrics.jsonl")
     wall = result.get("wall_s") if result else None
-    return {
+    return {**_wall_to_solve(rows, first_chain, result),
         "method": str(method), "seed": seed, "status": "finished" if result is not None else "incomplete",
         "budget_env_steps": budget, "last_env_steps": last, "n_evals": len(evals),
         "first_chain_success_step": first_chain, "first_strict_success_step": first_strict,
@@ -199,6 +199,28 @@ def read_run(path, default_n_goals: int = DEFAULT_N_GOALS, label=("method",)) ->
         "wall_all_legs": result is not None and "wall_s_this_leg" in result,
         "run_dir": path, "evals": evals, "result": result, "warnings": warnings,
     }
+
+
+def _wall_to_solve(rows, first_chain, result) -> dict:
+    """Wall time from the run's start to its first chain success (seconds), or None when unknown.
+
+    Read from the success row's ``time/wall_s`` (every leg of a resumed run); a row from older code has only
+    ``time/env_steps_per_s``, which is over the current leg: used only when result.json shows that the
+    run had one leg (``wall_s`` equals ``wall_s_this_leg``).
+    """
+    row = next((r for r in rows if first_chain is not None and int(r["env_steps"]) == first_chain), None)
+    if row is None:
+        return {"wall_s_to_solve": None}
+    w = row.get("time/wall_s")
+    if isinstance(w, (int, float)) and math.isfinite(w):
+        return {"wall_s_to_solve": round(float(w), 1)}
+    rate = row.get("time/env_steps_per_s")
+    one_leg = (result is not None and isinstance(result.get("wall_s"), (int, float))
+               and isinstance(result.get("wall_s_this_leg"), (int, float))
+               and abs(result["wall_s"] - result["wall_s_this_leg"]) < 1.0)
+    if one_leg and isinstance(rate, (int, float)) and rate > 0:
+        return {"wall_s_to_solve": round(first_chain / rate, 1)}
+    return {"wall_s_to_solve": None}
 
 
 def find_run_dirs(results_dir) -> list[Path]:
@@ -550,6 +572,13 @@ def summarise(by_method: dict, budget, budgets, iqm=None) -> dict:
              "q75_steps_to_solve": censored_quantile(steps, 0.75),
              "median_wall_s": (float(np.median(walls)) if (walls := [r["wall_s"] for r in runs if r.get("wall_all_legs")
                                                           and r["wall_s"] is not None]) else None),
+             # censored like the steps: an unsolved run is +inf; None (unknown) if a solved run lacks its time
+             "median_wall_s_to_solve": (None if any(math.isfinite(st) and r["wall_s_to_solve"] is None
+                                                    for st, r in zip(steps, runs))
+                                        else censored_quantile([r["wall_s_to_solve"] if math.isfinite(st)
+                                                                else math.inf for st, r in zip(steps, runs)], 0.5)),
+             "wall_to_solve_known": all(not math.isfinite(st) or r["wall_s_to_solve"] is not None
+                                        for st, r in zip(steps, runs)),
              "unsolved_with_smaller_budget": [r["seed"] for r in runs if r["first_chain_success_step"] is None
                                              and (r["budget_env_steps"] or budget) < budget],
              "iqm": {}}
@@ -564,13 +593,15 @@ def summarise(by_method: dict, budget, budgets, iqm=None) -> dict:
 
 def _summary_markdown(summary: dict, budget, budgets, have_rliable: bool, notes) -> tuple[str, str]:
     head = ["method", "n", f"solved ≤{_fmt_steps(budget)}", "solved strictly", "median steps to solve",
-            "IQR steps to solve", "median wall time"] + [f"IQM goals @{_fmt_steps(b)} [95% CI]" for b in budgets]
+            "IQR steps to solve", "median wall time to solve", "median wall time"] + [f"IQM goals @{_fmt_steps(b)} [95% CI]" for b in budgets]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for m, d in summary.items():
         n = f"{d['n']}" + (f" ({d['n_incomplete']} incomplete)" if d["n_incomplete"] else "")
         iqr = f"[{_fmt_steps(d['q25_steps_to_solve'])}, {_fmt_steps(d['q75_steps_to_solve'])}]"
         cells = [m, n, f"{d['solved']}/{d['n']}", f"{d['solved_strict']}/{d['n']}",
                  _fmt_steps(d["median_steps_to_solve"]), iqr,
+                 ("—" if not d["wall_to_solve_known"] else "not reached" if d["median_wall_s_to_solve"] is None
+                  else f"{d['median_wall_s_to_solve'] / 60:.1f} min"),
                  "—" if d["median_wall_s"] is None else f"{d['median_wall_s'] / 60:.1f} min"]
         for b in budgets:
             e = d["iqm"][str(b)]
@@ -587,6 +618,8 @@ def _summary_markdown(summary: dict, budget, budgets, have_rliable: bool, notes)
         "reached (goals / n goals) at each budget, with 95% percentile stratified-bootstrap CIs from rliable."
         if have_rliable else "- IQM columns are empty: rliable is not installed (pip install rliable).",
         f"- {LOCF_RULE} The score of a run at a budget is its last evaluation at or before it.",
+        "- Median wall time to solve: from the run's start to its first chain success, censored as the steps "
+        "(— when a solved run's time is unknown: older metrics without time/wall_s of a resumed run).",
         "- Median wall time: over the finished runs whose result.json counts every leg of a resumed run (it "
         "has wall_s_this_leg; older ones give only the last leg, so they are left out: — when none). It "
         "includes the env steps a run spent after its first success and depends on the machine and its load.",

@@ -95,6 +95,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
                 run.save(ckpt_path)
                 p.next_ckpt += cfg.checkpoint.interval
             m["time/env_steps_per_s"], m["time/updates"] = p.rate(t0), p.n_updates
+            m["time/wall_s"] = p.wall()  # every leg of a resumed run (the report's wall time to solve)
             log.log(m, p.frames)
             bar.update(data.numel())
             if stop_after is not None and evaluator.first_chain is not None \

@@ -237,3 +237,36 @@ def test_label_groups_runs_by_config_entries(tmp_path, capsys):
     # the default groups by method only: all five runs are db_ags
     s = report.write_report(tmp_path, out=tmp_path / "rep2", budgets=(10_000,), n_goals=N, reps=50, verbose=False)
     assert list(s["methods"]) == ["db_ags"] and s["methods"]["db_ags"]["n"] == 5
+
+
+def test_wall_time_to_solve_is_read_at_the_first_success(tmp_path):
+    """The wall time to solve is the success row's time/wall_s; older rows (no time/wall_s) give it by their
+    rate only when the run had one leg; a solved run whose time is unknown makes the median unknown (—), an
+    unsolved run counts as +inf (not reached)."""
+    cfg = lambda seed, **kw: {"seed": seed, "method": "m", "collector": {"total_frames": 20_000}, **kw}  # noqa
+
+    def rec(steps, goals, chain, **kw):
+        return json.dumps({"env_steps": steps, "eval/goals_reached": goals, "eval/chain_success": float(chain),
+                           "eval/strict_chain_success": float(chain), "eval/n_goals": N, **kw})
+
+    res = lambda wall, leg: {"env_steps": 20_000, "wall_s": wall, "wall_s_this_leg": leg}  # noqa
+    # new metrics: time/wall_s of the success row (here after a resume: 400 s over both legs)
+    _write_run(tmp_path / "a" / "m_s0", [], cfg(0), res(900.0, 300.0), extra_lines=[
+        rec(5000, 2, 0, **{"time/wall_s": 150.0}), rec(10000, 5, 1, **{"time/wall_s": 400.0, "time/env_steps_per_s": 99.0})])
+    # older metrics, one leg: 5000 env steps at 50 env steps/s = 100 s
+    _write_run(tmp_path / "a" / "m_s1", [], cfg(1), res(400.0, 400.0), extra_lines=[
+        rec(5000, 5, 1, **{"time/env_steps_per_s": 50.0})])
+    _write_run(tmp_path / "a" / "m_s2", [], cfg(2), res(800.0, 800.0), extra_lines=[rec(20000, 3, 0)])  # unsolved
+    s = report.write_report(tmp_path / "a", out=tmp_path / "rep", budgets=(20_000,), n_goals=N, reps=50)
+    runs = {r["seed"]: r for r in csv.DictReader(open(tmp_path / "rep" / "runs.csv"))}
+    assert float(runs["0"]["wall_s_to_solve"]) == 400.0 and float(runs["1"]["wall_s_to_solve"]) == 100.0
+    assert runs["2"]["wall_s_to_solve"] == ""
+    m = s["methods"]["m"]
+    assert m["median_wall_s_to_solve"] == 400.0 and m["wall_to_solve_known"]  # median of 100, 400, +inf
+    # older metrics of a resumed run: the rate is over the last leg only, so the time is unknown
+    _write_run(tmp_path / "b" / "m_s0", [], cfg(0), res(900.0, 300.0), extra_lines=[
+        rec(10000, 5, 1, **{"time/env_steps_per_s": 99.0})])
+    s = report.write_report(tmp_path / "b", out=tmp_path / "rep2", budgets=(20_000,), n_goals=N, reps=50,
+                            verbose=False)
+    assert s["methods"]["m"]["median_wall_s_to_solve"] is None and not s["methods"]["m"]["wall_to_solve_known"]
+    assert "| — |" in (tmp_path / "rep2" / "summary.md").read_text()
