@@ -383,12 +383,21 @@ def test_precision_auto_is_bf16_only_on_a_cpu_with_native_bf16(monkeypatch, caps
     assert "no native bf16" in capsys.readouterr().out
 
 
-def test_tests_pin_fp32_whatever_the_recipe_default():
-    from _helpers import config
+def test_precision_defaults_auto_on_the_maze_fp32_elsewhere_and_in_experiments_and_tests():
+    """auto (bf16 where native) only where bf16 was measured to learn as well (the maze recipes); Fetch and
+    the schema stay fp32; the ablation experiments and the tests pin fp32 whatever the machine."""
+    from _helpers import CONFIG_DIR, config
+    from hydra import compose, initialize_config_dir
 
     from srdcil.config import TrainConfig
 
     assert TrainConfig().precision == "fp32"
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        raw = lambda name, *o: compose(config_name=name, overrides=list(o)).precision  # noqa: E731
+        assert raw("sr_dcil_dubins") == "auto" and raw("dcil_ii_dubins") == "auto"
+        assert raw("sr_dcil_fetch") == "fp32" and raw("dcil_ii_fetch") == "fp32"
+        assert raw("sr_dcil_dubins", "experiment=dubins_ablation") == "fp32"
+        assert raw("sr_dcil_fetch", "experiment=fetch_ablation") == "fp32"
     assert config("sr_dcil_dubins", []).precision == "fp32"
     assert config("sr_dcil_dubins", ["precision=bf16"]).precision == "bf16"
 

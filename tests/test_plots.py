@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from srdcil import plots
 from srdcil.goals import demo_transitions, demo_value_states
