@@ -6,6 +6,13 @@
 #                                                     EXTRAS=sweep), the commit in DIR/COMMIT
 #   benchmarks/pinned_run.sh run DIR CMD...           run CMD in DIR/wt with DIR/venv, one torch thread, wandb off
 #                                                     (relative paths in CMD are relative to DIR/wt)
+#   benchmarks/pinned_run.sh queue DIR QUEUE [OVERRIDES...]  one worker (one core): run the next 'method:seed' line
+#                                                     of the file QUEUE that has no result.json yet and that no other
+#                                                     worker of this leg has claimed (DIR/claimed.txt), as
+#                                                     EXPERIMENT (default dubins_ablation) of RECIPE (default
+#                                                     recipes/sr_dcil_dubins.py) in DIR/results/EXPERIMENT/M_sS
+#                                                     (resume=auto continues its checkpoint); then the next line.
+#                                                     Start one per core; a new leg: rm DIR/claimed.txt first
 #   benchmarks/pinned_run.sh sync RUNS DEST           copy the small files of every run directory under RUNS
 #                                                     (config, metrics, result, pictures; never checkpoints) to
 #                                                     DEST/<run>, and the series' COMMIT (found in RUNS or
@@ -16,9 +23,12 @@
 #   nohup benchmarks/pinned_run.sh run ~/series python recipes/sr_dcil_dubins.py -m experiment=dubins_ablation \
 #       hydra/launcher=joblib hydra.launcher.n_jobs=2 hydra.sweep.dir=$HOME/series/results/dubins_ablation > series.log 2>&1 &
 #   benchmarks/pinned_run.sh sync ~/series/results/dubins_ablation results/dubins_ablation
+# or, with a list of the runs still to do (lines 'db_ags:1'), one worker per core, never an idle core at the tail:
+#   for i in 1 2; do nohup benchmarks/pinned_run.sh queue ~/series todo.txt > ~/series/worker$i.log 2>&1 & done
 set -euo pipefail
 REPO="$(cd "$(dirname "$0")/.." && pwd)"
-usage() { sed -n '2,18p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
+SELF="$(cd "$(dirname "$0")" && pwd)/$(basename "$0")"
+usage() { sed -n '2,27p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
 [ $# -ge 2 ] || usage
 cmd=$1; dir=$2; shift 2
 case "$cmd" in
@@ -46,6 +56,28 @@ case "$cmd" in
     export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 WANDB_MODE=${WANDB_MODE:-disabled} PYTHONUNBUFFERED=1
     export PATH="$(cd "$dir" && pwd)/venv/bin:$PATH" VIRTUAL_ENV="$(cd "$dir" && pwd)/venv"
     exec "$@" ;;
+  queue)
+    [ $# -ge 1 ] || usage
+    [ -f "$dir/COMMIT" ] || { echo "$dir is not set up: run '$0 setup $dir' first" >&2; exit 1; }
+    dir=$(cd "$dir" && pwd); queue=$(cd "$(dirname "$1")" && pwd)/$(basename "$1"); shift
+    exp=${EXPERIMENT:-dubins_ablation}; recipe=${RECIPE:-recipes/sr_dcil_dubins.py}
+    mkdir -p "$dir/results/$exp"
+    while true; do
+      item=$(  # the next line with no result.json and no claim, claimed under a lock
+        exec 9>"$dir/queue.lock"; flock 9
+        while read -r line; do
+          line=${line%%#*}; line=${line//[[:space:]]/}; [ -n "$line" ] || continue
+          [ -f "$dir/results/$exp/${line%:*}_s${line#*:}/result.json" ] && continue
+          grep -qx "$line" "$dir/claimed.txt" 2>/dev/null && continue
+          echo "$line" >> "$dir/claimed.txt"; echo "$line"; break
+        done < "$queue")
+      [ -n "$item" ] || { echo "$(date +%T) queue done"; break; }
+      m=${item%:*}; s=${item#*:}; run="$dir/results/$exp/${m}_s$s"
+      echo "$(date +%T) start $m seed $s"
+      rc=0; bash "$SELF" run "$dir" python "$recipe" "experiment=$exp" "method=$m" "seed=$s" "hydra.run.dir=$run" "$@" \
+        > "$dir/results/$exp/${m}_s$s.log" 2>&1 || rc=$?
+      echo "$(date +%T) end $m seed $s rc=$rc"
+    done ;;
   sync)
     [ $# -ge 1 ] || usage
     src=$dir; dest=$1; n=0

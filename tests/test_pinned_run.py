@@ -42,3 +42,40 @@ def test_run_uses_the_pinned_tree_and_venv_with_one_thread(tmp_path):
     assert r.returncode == 0, r.stderr
     cwd, threads, venv = r.stdout.split()
     assert Path(cwd) == (d / "wt").resolve() and threads == "1" and Path(venv) == (d / "venv").resolve()
+
+
+STUB = """#!/usr/bin/env bash
+# stands in for the venv's python: records its arguments, writes result.json into hydra.run.dir
+for a in "$@"; do case "$a" in hydra.run.dir=*) out=${a#hydra.run.dir=};; method=*) m=${a#method=};; seed=*) s=${a#seed=};; esac; done
+echo "$m:$s $*" >> "$CALLS"; sleep 0.3; mkdir -p "$out"; echo '{}' > "$out/result.json"
+"""
+
+
+def test_queue_workers_run_each_missing_item_once_in_order(tmp_path):
+    d = tmp_path / "pin"
+    (d / "wt").mkdir(parents=True)
+    (d / "venv" / "bin").mkdir(parents=True)
+    (d / "venv" / "bin" / "python").write_text(STUB)
+    (d / "venv" / "bin" / "python").chmod(0o755)
+    (d / "COMMIT").write_text("abc\n")
+    done = d / "results" / "dubins_ablation" / "db_s1"
+    done.mkdir(parents=True)
+    (done / "result.json").write_text("{}")  # finished already: skipped
+    q = tmp_path / "todo.txt"
+    q.write_text("# method:seed\ndb:1\nvc:1\n\nvc_ags:1  # a comment\ndb_ags:2\n")
+    env = dict(os.environ, CALLS=str(tmp_path / "calls.txt"))
+    workers = [subprocess.Popen(["bash", str(SCRIPT), "queue", str(d), str(q), "precision=fp32"], env=env,
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for _ in range(2)]
+    logs = [w.communicate(timeout=60)[0] for w in workers]
+    assert all(w.returncode == 0 for w in workers), logs
+    assert all("queue done" in log for log in logs)
+    calls = (tmp_path / "calls.txt").read_text().splitlines()
+    assert sorted(c.split()[0] for c in calls) == ["db_ags:2", "vc:1", "vc_ags:1"]  # each once, db:1 skipped
+    assert calls[-1].startswith("db_ags:2")  # in the file's order: the two workers took the first two
+    first = next(c for c in calls if c.startswith("vc:1")).split()[1:]
+    assert first == ["recipes/sr_dcil_dubins.py", "experiment=dubins_ablation", "method=vc", "seed=1",
+                     f"hydra.run.dir={(d / 'results' / 'dubins_ablation' / 'vc_s1').resolve()}", "precision=fp32"]
+    # started again (a new leg), nothing is left to do
+    (d / "claimed.txt").unlink()
+    r = subprocess.run(["bash", str(SCRIPT), "queue", str(d), str(q)], env=env, capture_output=True, text=True)
+    assert r.returncode == 0 and "queue done" in r.stdout and len((tmp_path / "calls.txt").read_text().splitlines()) == 3
