@@ -93,7 +93,8 @@ def test_signal_stops_cleanly_with_a_checkpoint_and_the_same_command_resumes(sig
     res = json.loads((out / "result.json").read_text())
     assert res["env_steps"] == ck["frames"] + 120
     # the run's wall time counts both legs: the first one's as saved at the stop, plus this one
-    assert res["wall_s"] == pytest.approx(ck["progress"]["wall_s"] + res["wall_s_this_leg"], rel=1e-6)
+    # (to 10 ms: the two are read from the clock at two nearby instants)
+    assert res["wall_s"] == pytest.approx(ck["progress"]["wall_s"] + res["wall_s_this_leg"], abs=0.01)
     assert ck["progress"]["wall_s"] > 0
     # metrics.jsonl logs the same all-legs wall time (the report's wall time to solve): it keeps growing
     walls = [json.loads(x)["time/wall_s"] for x in (out / "metrics.jsonl").read_text().splitlines()]
