@@ -562,6 +562,7 @@ def summarise(by_method: dict, budget, budgets, iqm=None) -> dict:
     out = {}
     for m, runs in by_method.items():
         steps = steps_to_solve(runs, budget)
+        walls_to_solve = [r["wall_s_to_solve"] if math.isfinite(st) else math.inf for st, r in zip(steps, runs)]
         solved = sum(math.isfinite(s) for s in steps)
         strict = sum(r["first_strict_success_step"] is not None and r["first_strict_success_step"] <= budget
                      for r in runs)
@@ -573,12 +574,9 @@ def summarise(by_method: dict, budget, budgets, iqm=None) -> dict:
              "median_wall_s": (float(np.median(walls)) if (walls := [r["wall_s"] for r in runs if r.get("wall_all_legs")
                                                           and r["wall_s"] is not None]) else None),
              # censored like the steps: an unsolved run is +inf; None (unknown) if a solved run lacks its time
-             "median_wall_s_to_solve": (None if any(math.isfinite(st) and r["wall_s_to_solve"] is None
-                                                    for st, r in zip(steps, runs))
-                                        else censored_quantile([r["wall_s_to_solve"] if math.isfinite(st)
-                                                                else math.inf for st, r in zip(steps, runs)], 0.5)),
-             "wall_to_solve_known": all(not math.isfinite(st) or r["wall_s_to_solve"] is not None
-                                        for st, r in zip(steps, runs)),
+             "median_wall_s_to_solve": (censored_quantile(walls_to_solve, 0.5) if None not in walls_to_solve
+                                        else None),
+             "wall_to_solve_known": None not in walls_to_solve,
              "unsolved_with_smaller_budget": [r["seed"] for r in runs if r["first_chain_success_step"] is None
                                              and (r["budget_env_steps"] or budget) < budget],
              "iqm": {}}
