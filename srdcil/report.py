@@ -27,8 +27,8 @@ they are still going / were interrupted), so they have no evaluations after some
 common axis of env steps a run's value at step t is the value of its last evaluation at or before t
 ("last observation carried forward", LOCF): a run that solved the chain and stopped keeps scoring
 its final value, a run that hit its budget keeps its last value. A run enters an average at t only
-once it has an evaluation at or before t. Runs still in progress (no ``result.json``) are treated
-the same way, which favours them if they would have got worse; the summary counts them.
+once it has an evaluation at or before t. Runs still in progress (no ``result.json``) are not carried
+past their last evaluation (we do not know what comes next); the summary counts them.
 
 Curves (ablation.png, in the style of the paper's Fig. 4)
 ---------------------------------------------------------
@@ -43,7 +43,9 @@ Steps-to-solve is censored: a run that did not reach the final goal within the b
 interpolation between order statistics, as ``numpy.quantile``) of these values; a quantile that
 falls on or next to an infinite value is "not reached". So the median is "not reached" when fewer
 than half the runs solved (and, for an even number of runs, also when exactly half did: it then
-lies somewhere between the last solve and beyond the budget).
+lies somewhere between the last solve and beyond the budget). Below the table, a per-seed table
+gives each run's first chain success, first strict success and best goals: what the counts and
+medians are made of.
 
 Interval estimates (rliable, Agarwal et al. 2021)
 -------------------------------------------------
@@ -625,6 +627,31 @@ def _summary_markdown(summary: dict, budget, budgets, have_rliable: bool, notes)
     return text, "\n".join(explain)
 
 
+def _per_seed_markdown(by_method: dict, budget) -> str:
+    """One row per method with each seed's outcome: what the summary's medians and counts are made of."""
+    never = {"first_chain_success_step": f"not within {_fmt_steps(budget)}", "first_strict_success_step": "never"}
+
+    def cell(runs, field):
+        return ", ".join(f"s{r['seed']} " + (_fmt_steps(r[field]) if r[field] is not None
+                                             else never[field] if r["status"] == "finished" else "running")
+                         for r in runs)
+
+    lines = ["| method | seeds finished | reached the final goal (env steps, per seed) | every goal for real "
+             "| best goals (per seed) |", "|---|---|---|---|---|"]
+    for m, runs in by_method.items():
+        runs = sorted(runs, key=lambda r: (r["seed"] is None, r["seed"]))
+        fin = [r for r in runs if r["status"] == "finished"]
+        running = len(runs) - len(fin)
+        solved = sum(r["first_chain_success_step"] is not None and r["first_chain_success_step"] <= budget
+                     for r in runs)
+        best = ", ".join(f"{r['best_goals_reached']}/{r['n_goals']}" + (
+            "" if r["status"] == "finished" else f" (at {_fmt_steps(r['last_env_steps'])}, running)") for r in runs)
+        lines.append(f"| `{m}` | {len(fin)}" + (f" (+{running} running)" if running else "")
+                     + f", {solved} solved | {cell(runs, 'first_chain_success_step')} | "
+                     f"{cell(runs, 'first_strict_success_step')} | {best} |")
+    return "\n".join(lines)
+
+
 def _jsonable(x):
     if isinstance(x, dict):
         return {str(k): _jsonable(v) for k, v in x.items()}
@@ -700,7 +727,10 @@ def write_report(results_dir, out=None, budget=None, budgets=DEFAULT_BUDGETS, n_
                      "and IQMs.")
     table, explain = _summary_markdown(summary, budget, budgets, iqm is not None, notes)
     files["summary.md"] = out / "summary.md"
-    files["summary.md"].write_text(f"# Ablation summary: {results_dir}\n\n{table}\n\n{explain}\n")
+    per_seed = _per_seed_markdown(by_method, budget)
+    files["summary.md"].write_text(f"# Ablation summary: {results_dir}\n\n{table}\n\n{explain}\n\n"
+                                   f"## Per seed\n\n{per_seed}\n\n- *running*: no result.json yet (in "
+                                   "progress or interrupted); its best goals are those of its evaluations so far.\n")
     say(table)
     say(explain)
 

@@ -167,6 +167,11 @@ def test_summary(written):
     md = (out / "summary.md").read_text()
     assert "LOCF" in md and "not reached" in md and "| db_ags | 3 | 2/3 | 2/3 | 20k |" in md
     assert "| db_ags | 3 | 2/3 | 2/3 | 20k |" in stdout
+    per_seed = md.split("## Per seed")[1]
+    assert ("| `db_ags` | 3, 2 solved | s0 10k, s1 20k, s2 not within 50k | s0 15k, s1 20k, s2 never "
+            "| 5/5, 5/5, 3/5 |") in per_seed
+    assert "| `vanilla` | 2 (+1 running), 1 solved | s0 10k, s1 not within 50k, s2 running |" in per_seed
+    assert "5/5, 2/5, 2/5 (at 12k, running) |" in per_seed  # at its last line (12k), not its last evaluation
 
 
 def test_rliable_outputs(written):
