@@ -2,6 +2,7 @@
 import csv
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -275,3 +276,44 @@ def test_wall_time_to_solve_is_read_at_the_first_success(tmp_path):
                             verbose=False)
     assert s["methods"]["m"]["median_wall_s_to_solve"] is None and not s["methods"]["m"]["wall_to_solve_known"]
     assert "| — |" in (tmp_path / "rep2" / "summary.md").read_text()
+
+
+COMMITTED = sorted((Path(__file__).resolve().parents[1] / "results").glob("*/runs.csv"))
+
+
+@pytest.mark.parametrize("runs_csv", COMMITTED, ids=[p.parent.name for p in COMMITTED])
+def test_committed_runs_csv_agrees_with_its_metrics(runs_csv, tmp_path):
+    """Every committed runs.csv row says what its run's metrics.jsonl says (read here without the report's code),
+    and the report regenerates the committed file byte for byte from the run directories."""
+    rows = list(csv.DictReader(open(runs_csv)))
+    assert rows
+    for row in rows:
+        d = runs_csv.parent / row["run_dir"]
+        evals = []
+        for line in (d / "metrics.jsonl").read_text().splitlines():
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if "eval/goals_reached" in rec:
+                evals.append(rec)
+        evals.sort(key=lambda r: r["env_steps"])
+        chain = [r["env_steps"] for r in evals if r["eval/chain_success"] >= 1]
+        strict = [r["env_steps"] for r in evals if r["eval/strict_chain_success"] >= 1]
+        cfg = yaml.safe_load((d / "config.yaml").read_text())
+        assert (row["method"].split("/")[0], int(row["seed"])) == (cfg["method"], cfg["seed"]), d
+        assert int(row["n_evals"]) == len(evals), d
+        assert int(row["best_goals_reached"]) == max(r["eval/goals_reached"] for r in evals), d
+        assert row["first_chain_success_step"] == (str(chain[0]) if chain else ""), d
+        assert row["first_strict_success_step"] == (str(strict[0]) if strict else ""), d
+        assert row["status"] == ("finished" if (d / "result.json").exists() else "incomplete"), d
+        if chain and (d / "result.json").exists():
+            assert json.loads((d / "result.json").read_text())["first_chain_success_step"] == chain[0], d
+    label = ("method", "precision") if "/" in rows[0]["method"] else ("method",)
+    report.write_report(runs_csv.parent, out=tmp_path, n_goals=17, reps=10, verbose=False, label=label)
+    again = list(csv.DictReader(open(tmp_path / "runs.csv")))
+    for r in again:
+        r["run_dir"] = str((tmp_path / r["run_dir"]).resolve())
+    for r in rows:
+        r["run_dir"] = str((runs_csv.parent / r["run_dir"]).resolve())
+    assert again == rows
