@@ -34,7 +34,11 @@ Curves (ablation.png, in the style of the paper's Fig. 4)
 ---------------------------------------------------------
 (a) success rate: ``chain_success`` at t averaged over the seeds of a method, band = mean +- std/2
 (std over seeds, ddof=0); (b) fraction of seeds solved by t: share of the method's runs whose
-first chain success is at or before t; (c) normalised goals reached, mean +- std/2.
+first chain success is at or before t; (c) normalised goals reached, mean +- std/2. One evaluation is a
+single deterministic rollout, so a run's curve jumps between 0 and 1 from one evaluation to the next:
+in (a) and (c) each run's value is first averaged over its last ``--smooth`` evaluations (default 5;
+trailing, so no later evaluation enters a point), then averaged over seeds. (b) and every table use
+the raw evaluations.
 
 Steps to solve (summary.md)
 ---------------------------
@@ -74,6 +78,7 @@ import yaml
 
 DEFAULT_N_GOALS = 17
 DEFAULT_BUDGETS = (25_000, 50_000, 75_000, 100_000)
+DEFAULT_SMOOTH = 5  # evaluations averaged per run in the curves (a) and (c) of ablation.png
 PREFERRED_ORDER = ("vanilla", "db", "db_ags", "db_ags_paper", "db_ags_recompute", "vc", "vc_ags", "vc_ags_paper", "dcil_ii")
 CSV_COLUMNS = ("method", "seed", "status", "budget_env_steps", "last_env_steps", "n_evals",
                "first_chain_success_step", "first_strict_success_step", "best_goals_reached",
@@ -290,17 +295,31 @@ def _until(run):
 _FIELDS = {"goals": 1, "chain": 2, "strict": 3, "goals_norm": 4}
 
 
-def run_curves(runs, grid, field: str = "goals_norm") -> np.ndarray:
-    """(n_runs, len(grid)) LOCF values of ``field`` (goals, chain, strict or goals_norm); NaN before a run's first eval."""
+def trailing_mean(values, k: int) -> np.ndarray:
+    """Mean of each value with the k - 1 before it (fewer at the start): a run's curve smoothed over its
+    last k evaluations, using no evaluation after the point."""
+    v = np.asarray(values, dtype=float)
+    if k <= 1 or v.size == 0:
+        return v
+    c = np.concatenate([[0.0], np.cumsum(v)])
+    i = np.arange(1, v.size + 1)
+    lo = np.maximum(i - k, 0)
+    return (c[i] - c[lo]) / (i - lo)
+
+
+def run_curves(runs, grid, field: str = "goals_norm", smooth: int = 1) -> np.ndarray:
+    """(n_runs, len(grid)) LOCF values of ``field`` (goals, chain, strict or goals_norm); NaN before a run's
+    first eval. ``smooth`` > 1: each run's values are first averaged over its last ``smooth`` evaluations."""
     j = _FIELDS[field]
-    return np.array([locf_on_grid([e[0] for e in r["evals"]], [e[j] for e in r["evals"]], grid, _until(r))
+    return np.array([locf_on_grid([e[0] for e in r["evals"]], trailing_mean([e[j] for e in r["evals"]], smooth),
+                                  grid, _until(r))
                      for r in runs]
                     ).reshape(len(runs), len(grid))
 
 
-def mean_band(runs, grid, field: str = "goals_norm"):
+def mean_band(runs, grid, field: str = "goals_norm", smooth: int = 1):
     """(mean, std/2, n) across runs at each grid point, over the runs that have an evaluation by then."""
-    c = run_curves(runs, grid, field)
+    c = run_curves(runs, grid, field, smooth)
     return _nanmean(c), _nanstd(c) / 2, np.sum(~np.isnan(c), axis=0)
 
 
@@ -447,7 +466,7 @@ def profile_taus(runs, max_points: int = 101) -> np.ndarray:
     return np.asarray(taus if 1 < len(taus) <= max_points else np.linspace(0.0, 1.0, max_points))
 
 
-def plot_ablation(by_method: dict, grid, path, budget) -> None:
+def plot_ablation(by_method: dict, grid, path, budget, smooth: int = 1) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -459,12 +478,13 @@ def plot_ablation(by_method: dict, grid, path, budget) -> None:
     for m, runs in by_method.items():
         c, label = colors[m], f"{m} (n={len(runs)})"
         for ax, field in ((axes[0], "chain"), (axes[2], "goals_norm")):
-            mean, half, _ = mean_band(runs, grid, field)
+            mean, half, _ = mean_band(runs, grid, field, smooth)
             ax.plot(x, mean, color=c, label=label, **styles[m])
             ax.fill_between(x, mean - half, mean + half, color=c, alpha=0.18, lw=0)
         axes[1].plot(x, solved_fraction(runs, grid), color=c, label=label, **styles[m])
-    titles = ("(a) success rate (final goal reached)", "(b) fraction of seeds solved by t",
-              "(c) normalised goals reached")
+    per = f"\neach run's mean over its last {smooth} evaluations" if smooth > 1 else ""
+    titles = ("(a) success rate (final goal reached)" + per, "(b) fraction of seeds solved by t",
+              "(c) normalised goals reached" + per)
     ylabels = ("chain success, mean ± std/2", "fraction of seeds", "goals reached / n goals, mean ± std/2")
     for ax, t, yl in zip(axes, titles, ylabels):
         ax.set_title(t, fontsize=11)
@@ -668,8 +688,11 @@ def _jsonable(x):
 
 def write_report(results_dir, out=None, budget=None, budgets=DEFAULT_BUDGETS, n_goals: int = DEFAULT_N_GOALS,
                  methods=None, grid_step: int = 1000, reps: int = 2000, seed: int = 0, verbose: bool = True,
-                 label=("method",)) -> dict:
+                 label=("method",), smooth: int = DEFAULT_SMOOTH) -> dict:
     """Read the runs under ``results_dir`` and write the report files into ``out`` (default: results_dir).
+
+    ``smooth``: the curves (a) and (c) of ablation.png show each run's mean over its last ``smooth``
+    evaluations (1: the raw evaluations); no other output depends on it.
 
     Returns the summary (as written to summary.json) plus ``files``: the paths written.
     """
@@ -692,7 +715,7 @@ def write_report(results_dir, out=None, budget=None, budgets=DEFAULT_BUDGETS, n_
     write_runs_csv(runs, files["runs.csv"])
     grid = np.unique(np.append(np.arange(0, budget, grid_step), budget))
     files["ablation.png"] = out / "ablation.png"
-    plot_ablation(by_method, grid, files["ablation.png"], budget)
+    plot_ablation(by_method, grid, files["ablation.png"], budget, smooth)
 
     scores = {m: {b: [s for s in (score_at(r, b) for r in rs) if s is not None] for b in budgets}
               for m, rs in by_method.items()}
@@ -765,6 +788,9 @@ def main(argv=None) -> None:
                    help="number of goals when a run does not record it (default 17, the Dubins maze)")
     p.add_argument("--methods", nargs="+", default=None, help="methods to show, in this order (commas accepted)")
     p.add_argument("--grid-step", type=_parse_steps, default=1000, help="spacing of the curve grid (env steps)")
+    p.add_argument("--smooth", type=int, default=DEFAULT_SMOOTH,
+                   help=f"curves (a) and (c): each run's mean over its last N evaluations (default "
+                        f"{DEFAULT_SMOOTH}; 1 = raw); the tables do not depend on it")
     p.add_argument("--reps", type=int, default=2000, help="bootstrap replications (default 2000)")
     p.add_argument("--seed", type=int, default=0, help="bootstrap seed (default 0)")
     p.add_argument("--label", default="method",
@@ -775,7 +801,7 @@ def main(argv=None) -> None:
     budgets = [_parse_steps(b) for b in split(a.budgets)] if a.budgets else DEFAULT_BUDGETS
     write_report(a.results_dir, out=a.out, budget=a.budget, budgets=budgets, n_goals=a.n_goals,
                  methods=split(a.methods) if a.methods else None, grid_step=a.grid_step, reps=a.reps, seed=a.seed,
-                 label=tuple(k for k in a.label.split(",") if k))
+                 label=tuple(k for k in a.label.split(",") if k), smooth=a.smooth)
 
 
 if __name__ == "__main__":

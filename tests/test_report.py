@@ -278,6 +278,18 @@ def test_wall_time_to_solve_is_read_at_the_first_success(tmp_path):
     assert "| — |" in (tmp_path / "rep2" / "summary.md").read_text()
 
 
+
+def test_curves_smoothed_over_each_runs_last_evaluations():
+    np.testing.assert_allclose(report.trailing_mean([0, 1, 0, 1, 1], 2), [0, 0.5, 0.5, 0.5, 1])
+    np.testing.assert_allclose(report.trailing_mean([0, 3, 0], 5), [0, 1.5, 1])  # fewer at the start
+    np.testing.assert_allclose(report.trailing_mean([2, 4], 1), [2, 4])
+    run = {"status": "finished", "evals": [(s, 0, c, 0, c) for s, c in ((0, 0), (1000, 1), (2000, 0), (3000, 1))]}
+    grid = [0, 1500, 2000, 3000, 4000]
+    np.testing.assert_allclose(report.run_curves([run], grid, "chain", smooth=1)[0], [0, 1, 0, 1, 1])
+    # the mean of the last 2 evaluations at or before t, then carried forward
+    np.testing.assert_allclose(report.run_curves([run], grid, "chain", smooth=2)[0], [0, 0.5, 0.5, 0.5, 0.5])
+
+
 COMMITTED = sorted((Path(__file__).resolve().parents[1] / "results").glob("*/runs.csv"))
 
 
