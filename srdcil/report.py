@@ -82,7 +82,8 @@ DEFAULT_SMOOTH = 5  # evaluations averaged per run in the curves (a) and (c) of 
 PREFERRED_ORDER = ("vanilla", "db", "db_ags", "db_ags_paper", "db_ags_recompute", "vc", "vc_ags", "vc_ags_paper", "dcil_ii")
 CSV_COLUMNS = ("method", "seed", "status", "budget_env_steps", "last_env_steps", "n_evals",
                "first_chain_success_step", "first_strict_success_step", "best_goals_reached",
-               "final_goals_reached", "n_goals", "stop_reason", "wall_s", "wall_s_to_solve", "run_dir")
+               "final_goals_reached", "n_goals", "n_evals_after_success", "success_rate_after_success",
+               "goals_after_success", "stop_reason", "wall_s", "wall_s_to_solve", "run_dir")
 LOCF_RULE = ("Runs of unequal length: a run's value at env step t is that of its last evaluation at or "
              "before t (last observation carried forward, LOCF); a run enters an average at t only once "
              "it has an evaluation at or before t.")
@@ -182,6 +183,8 @@ def read_run(path, default_n_goals: int = DEFAULT_N_GOALS, label=("method",)) ->
         evals.append((int(r["env_steps"]), g, chain, strict, g / n_goals))
 
     first_chain = next((e[0] for e in evals if e[2] >= 1.0), None)
+    # stability after success: the evaluations after the first chain success (that one excluded)
+    after = [e for e in evals if first_chain is not None and e[0] > first_chain]
     first_strict = next((e[0] for e in evals if e[3] >= 1.0), None)
     best = max((e[1] for e in evals), default=None)
     last = max_steps
@@ -200,7 +203,10 @@ def read_run(path, default_n_goals: int = DEFAULT_N_GOALS, label=("method",)) ->
         "budget_env_steps": budget, "last_env_steps": last, "n_evals": len(evals),
         "first_chain_success_step": first_chain, "first_strict_success_step": first_strict,
         "best_goals_reached": best, "final_goals_reached": evals[-1][1] if evals else None,
-        "n_goals": n_goals, "stop_reason": (result or {}).get("stop_reason"),
+        "n_goals": n_goals, "n_evals_after_success": len(after) if first_chain is not None else None,
+        "success_rate_after_success": round(float(np.mean([e[2] for e in after])), 4) if after else None,
+        "goals_after_success": round(float(np.mean([e[4] for e in after])), 4) if after else None,
+        "stop_reason": (result or {}).get("stop_reason"),
         "wall_s": round(float(wall), 1) if isinstance(wall, (int, float)) and math.isfinite(wall) else None,
         # older result.json files (no wall_s_this_leg) give only the last leg's wall time after a resume
         "wall_all_legs": result is not None and "wall_s_this_leg" in result,
@@ -579,6 +585,15 @@ def write_runs_csv(runs, path) -> None:
             w.writerow([_cell(row[c]) for c in CSV_COLUMNS])
 
 
+def _after_success(runs) -> dict:
+    """Stability after success: the mean, over the runs with evaluations after their first chain success,
+    of each run's share of those evaluations that reached the final goal, and of their normalised goals."""
+    rs = [r for r in runs if r.get("success_rate_after_success") is not None]
+    return {"n_runs_after_success": len(rs),
+            "success_rate_after_success": float(np.mean([r["success_rate_after_success"] for r in rs])) if rs else None,
+            "goals_after_success": float(np.mean([r["goals_after_success"] for r in rs])) if rs else None}
+
+
 def summarise(by_method: dict, budget, budgets, iqm=None) -> dict:
     """Per-method numbers of the summary table (plain Python values, None for 'not reached'/missing)."""
     out = {}
@@ -599,6 +614,7 @@ def summarise(by_method: dict, budget, budgets, iqm=None) -> dict:
              "median_wall_s_to_solve": (censored_quantile(walls_to_solve, 0.5) if None not in walls_to_solve
                                         else None),
              "wall_to_solve_known": None not in walls_to_solve,
+             **_after_success(runs),
              "unsolved_with_smaller_budget": [r["seed"] for r in runs if r["first_chain_success_step"] is None
                                              and (r["budget_env_steps"] or budget) < budget],
              "iqm": {}}
@@ -613,13 +629,16 @@ def summarise(by_method: dict, budget, budgets, iqm=None) -> dict:
 
 def _summary_markdown(summary: dict, budget, budgets, have_rliable: bool, notes) -> tuple[str, str]:
     head = ["method", "n", f"solved ≤{_fmt_steps(budget)}", "solved strictly", "median steps to solve",
-            "IQR steps to solve", "median wall time to solve", "median wall time"] + [f"IQM goals @{_fmt_steps(b)} [95% CI]" for b in budgets]
+            "IQR steps to solve", "after the first success: success rate, goals (runs)",
+            "median wall time to solve", "median wall time"] + [f"IQM goals @{_fmt_steps(b)} [95% CI]" for b in budgets]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for m, d in summary.items():
         n = f"{d['n']}" + (f" ({d['n_incomplete']} incomplete)" if d["n_incomplete"] else "")
         iqr = f"[{_fmt_steps(d['q25_steps_to_solve'])}, {_fmt_steps(d['q75_steps_to_solve'])}]"
         cells = [m, n, f"{d['solved']}/{d['n']}", f"{d['solved_strict']}/{d['n']}",
                  _fmt_steps(d["median_steps_to_solve"]), iqr,
+                 ("—" if d["success_rate_after_success"] is None else
+                  f"{d['success_rate_after_success']:.2f}, {d['goals_after_success']:.2f} ({d['n_runs_after_success']})"),
                  ("—" if not d["wall_to_solve_known"] else "not reached" if d["median_wall_s_to_solve"] is None
                   else f"{d['median_wall_s_to_solve'] / 60:.1f} min"),
                  "—" if d["median_wall_s"] is None else f"{d['median_wall_s'] / 60:.1f} min"]
@@ -638,6 +657,10 @@ def _summary_markdown(summary: dict, budget, budgets, have_rliable: bool, notes)
         "reached (goals / n goals) at each budget, with 95% percentile stratified-bootstrap CIs from rliable."
         if have_rliable else "- IQM columns are empty: rliable is not installed (pip install rliable).",
         f"- {LOCF_RULE} The score of a run at a budget is its last evaluation at or before it.",
+        "- After the first success (stability): for each run, the evaluations after its first chain "
+        "success (that one excluded; runs stop 20k env steps after it in the ablation): the share that "
+        "reached the final goal and their mean normalised goals; averaged over the runs that have such "
+        "evaluations (their number in brackets).",
         "- Median wall time to solve: from the run's start to its first chain success, censored as the steps "
         "(— when a solved run's time is unknown: older metrics without time/wall_s of a resumed run).",
         "- Median wall time: over the finished runs whose result.json counts every leg of a resumed run (it "

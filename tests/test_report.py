@@ -290,6 +290,26 @@ def test_curves_smoothed_over_each_runs_last_evaluations():
     np.testing.assert_allclose(report.run_curves([run], grid, "chain", smooth=2)[0], [0, 0.5, 0.5, 0.5, 0.5])
 
 
+
+def test_stability_after_the_first_success(tmp_path):
+    # seed 0: first success at 2k, then 1 of 3 evaluations succeed; seed 1: 1 of 2; seed 2: never solved
+    _write_run(tmp_path / "db_s0", [(0, 1, 0, 0), (1000, 3, 0, 0), (2000, 5, 1, 1), (3000, 4, 0, 0), (4000, 5, 1, 1),
+                                    (5000, 2, 0, 0)], {"seed": 0, "method": "db"}, {"env_steps": 5000})
+    _write_run(tmp_path / "db_s1", [(0, 1, 0, 0), (1000, 5, 1, 1), (2000, 5, 1, 1), (3000, 3, 0, 0)],
+               {"seed": 1, "method": "db"}, {"env_steps": 3000})
+    _write_run(tmp_path / "db_s2", [(0, 1, 0, 0), (1000, 2, 0, 0)], {"seed": 2, "method": "db"}, {"env_steps": 1000})
+    rep = report.write_report(tmp_path, out=tmp_path / "rep", n_goals=N, budgets=(5000,), reps=10, verbose=False)
+    runs = {r["seed"]: r for r in rep["runs"]}
+    assert (runs[0]["n_evals_after_success"], runs[0]["success_rate_after_success"]) == (3, pytest.approx(1 / 3, abs=1e-4))
+    assert runs[0]["goals_after_success"] == pytest.approx((4 + 5 + 2) / 3 / N, abs=1e-4)
+    assert (runs[1]["n_evals_after_success"], runs[1]["success_rate_after_success"]) == (2, 0.5)
+    assert (runs[2]["n_evals_after_success"], runs[2]["success_rate_after_success"]) == (None, None)
+    m = rep["methods"]["db"]
+    assert m["n_runs_after_success"] == 2
+    assert m["success_rate_after_success"] == pytest.approx((1 / 3 + 0.5) / 2, abs=1e-4)
+    assert "| 0.42, 0.77 (2) |" in (tmp_path / "rep" / "summary.md").read_text()
+
+
 COMMITTED = sorted((Path(__file__).resolve().parents[1] / "results").glob("*/runs.csv"))
 
 
