@@ -126,8 +126,8 @@ class LoadedAgent:
 
 def method_label(cfg) -> str:
     """``cfg.method`` if the run has one, else the variant (+ "DCIL-II resets" for demo-state resets)."""
-    name = cfg.get("method") or cfg.get("variant", "?")
-    if cfg.get("reset_scheme", "single") == "demo_states":
+    name = cfg.method or cfg.variant
+    if cfg.reset_scheme == "demo_states":
         name = f"{name} (DCIL-II resets)"
     return str(name)
 
@@ -307,8 +307,7 @@ def eval_rollout(agent: LoadedAgent) -> tuple[np.ndarray, int, int]:
     from srdcil.evaluation import evaluate
 
     cfg, v = agent.cfg, agent.variant
-    ags_cfg = cfg.get("ags") or {}
-    env = make_env(agent.task, 1, "cpu", ags=v.ags, ags_k=int(ags_cfg.get("k", 2)),
+    env = make_env(agent.task, 1, "cpu", ags=v.ags, ags_k=int(cfg.ags.k),
                    critic=agent.loss.target_q_value if v.ags else None, learn_thresholds=False,
                    thresholds=agent.thresholds.clone())
     metrics, rollout = evaluate(agent.task, env, agent.actor)

@@ -195,8 +195,8 @@ def _probe_with_task(path):
     agent = load_agent(path)
     if agent.task.name != "fetch":
         raise ValueError(f"{path}: a '{agent.task.name}' checkpoint; the grasp probe needs a Fetch one")
-    v, ags_cfg = agent.variant, agent.cfg.get("ags") or {}
-    env = make_env(agent.task, 1, "cpu", ags=v.ags, ags_k=int(ags_cfg.get("k", 2)),
+    v = agent.variant
+    env = make_env(agent.task, 1, "cpu", ags=v.ags, ags_k=int(agent.cfg.ags.k),
                    critic=agent.loss.target_q_value if v.ags else None, learn_thresholds=False,
                    thresholds=agent.thresholds.clone())
     out = grasp_probe(env, agent.actor)
