@@ -13,6 +13,8 @@
 #                                                     recipes/sr_dcil_dubins.py) in DIR/results/EXPERIMENT/M_sS
 #                                                     (resume=auto continues its checkpoint); then the next line.
 #                                                     Start one per core; a new leg: rm DIR/claimed.txt first
+#   benchmarks/pinned_run.sh status DIR QUEUE         where a queue stands: each line done / started (its last
+#                                                     env step) / to do, then the counts
 #   benchmarks/pinned_run.sh sync RUNS DEST           copy the small files of every run directory under RUNS
 #                                                     (config, metrics, result, pictures; never checkpoints) to
 #                                                     DEST/<run>, and the series' COMMIT (found in RUNS or
@@ -28,7 +30,7 @@
 set -euo pipefail
 REPO="$(cd "$(dirname "$0")/.." && pwd)"
 SELF="$(cd "$(dirname "$0")" && pwd)/$(basename "$0")"
-usage() { sed -n '2,27p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
+usage() { sed -n '2,29p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
 [ $# -ge 2 ] || usage
 cmd=$1; dir=$2; shift 2
 case "$cmd" in
@@ -78,6 +80,19 @@ case "$cmd" in
         > "$dir/results/$exp/${m}_s$s.log" 2>&1 || rc=$?
       echo "$(date +%T) end $m seed $s rc=$rc"
     done ;;
+  status)
+    [ $# -ge 1 ] || usage
+    exp=${EXPERIMENT:-dubins_ablation}; nd=0; ns=0; nt=0
+    while read -r line; do
+      line=${line%%#*}; line=${line//[[:space:]]/}; [ -n "$line" ] || continue
+      run="$dir/results/$exp/${line%:*}_s${line#*:}"
+      if [ -f "$run/result.json" ]; then echo "done     $line"; nd=$((nd + 1))
+      elif [ -f "$run/metrics.jsonl" ]; then
+        last=$(grep -o '"env_steps": [0-9]*' "$run/metrics.jsonl" | tail -n 1 | grep -o '[0-9]*$' || true)
+        echo "started  $line (at ${last:-0} env steps)"; ns=$((ns + 1))
+      else echo "to do    $line"; nt=$((nt + 1)); fi
+    done < "$1"
+    echo "$nd done, $ns started, $nt to do" ;;
   sync)
     [ $# -ge 1 ] || usage
     src=$dir; dest=$1; n=0

@@ -79,3 +79,17 @@ def test_queue_workers_run_each_missing_item_once_in_order(tmp_path):
     (d / "claimed.txt").unlink()
     r = subprocess.run(["bash", str(SCRIPT), "queue", str(d), str(q)], env=env, capture_output=True, text=True)
     assert r.returncode == 0 and "queue done" in r.stdout and len((tmp_path / "calls.txt").read_text().splitlines()) == 3
+
+
+def test_status_says_what_is_done_started_and_to_do(tmp_path):
+    runs = tmp_path / "pin" / "results" / "dubins_ablation"
+    (runs / "db_s0").mkdir(parents=True)
+    (runs / "db_s0" / "result.json").write_text("{}")
+    (runs / "vc_s0").mkdir()
+    (runs / "vc_s0" / "metrics.jsonl").write_text('{"env_steps": 1000, "x": 1}\n{"env_steps": 12000, "eval/g": 2}\n')
+    q = tmp_path / "plan.txt"
+    q.write_text("# plan\ndb:0\nvc:0  # running\nvanilla:0\n")
+    r = _sh("status", tmp_path / "pin", q)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.splitlines() == ["done     db:0", "started  vc:0 (at 12000 env steps)", "to do    vanilla:0",
+                                     "1 done, 1 started, 1 to do"]
