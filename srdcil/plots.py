@@ -45,7 +45,15 @@ chained evaluation takes). ``--live`` switches Q̄ to the live (non-target) twin
     ``eval/object_lift_m`` and ``eval/object_moved_m`` where a run logs them: did a Fetch policy grasp
     and lift the box?), one line per run.
 
+``chain`` (text, any ``*_ags`` run; others show no skips)
+    How one checkpoint's chained evaluation left each goal: reached for real (R), skipped by AGS after
+    a near miss (A) or never reached (.), with each goal's threshold θ_i. A run that reaches the final
+    goal with skipped goals solves in the paper's sense but not strictly; the thresholds say why (a
+    θ_i set while the critic was still near 0 lets AGS fire everywhere on goal i).
+
 CLI::
+
+    python -m srdcil.plots chain CKPT [CKPT ...] [--json OUT.json]
 
     python -m srdcil.plots run-curve RUN_DIR [RUN_DIR ...] [--keys eval/goals_reached ...] --out curve.png
     python -m srdcil.plots value-maps CKPT [CKPT ...] [--goal-index 3|stall] [--use-v] [--rollout] --out value_maps.png
@@ -303,17 +311,56 @@ def eval_rollout(agent: LoadedAgent) -> tuple[np.ndarray, int, int]:
     Returns ``(achieved goals [T+1, G], goals reached, goal index at the end)``: the last is the goal
     the chain stalls at (the last goal when the chain succeeds).
     """
-    from srdcil.builders import make_env
-    from srdcil.evaluation import evaluate
-
-    cfg, v = agent.cfg, agent.variant
-    env = make_env(agent.task, 1, "cpu", ags=v.ags, ags_k=int(cfg.ags.k),
-                   critic=agent.loss.target_q_value if v.ags else None, learn_thresholds=False,
-                   thresholds=agent.thresholds.clone())
-    metrics, rollout = evaluate(agent.task, env, agent.actor)
+    metrics, rollout = _chained_evaluation(agent)
     ag = torch.cat([rollout["achieved_goal"][:1], rollout["next", "achieved_goal"]], 0).cpu().numpy()
     last = int(rollout["next", "goal_idx"][-1].reshape(-1)[0])
     return ag, int(metrics["eval/goals_reached"]), last
+
+
+def eval_env(agent: LoadedAgent, thresholds: torch.Tensor | None = None):
+    """One env of the checkpoint's task as its chained evaluation sees it: AGS (for ``*_ags`` runs) with
+    the checkpoint's thresholds (or ``thresholds``), not learnt further, reading its target critic."""
+    from srdcil.builders import make_env
+
+    v = agent.variant
+    thr = agent.thresholds if thresholds is None else thresholds
+    return make_env(agent.task, 1, "cpu", ags=v.ags, ags_k=int(agent.cfg.ags.k),
+                    critic=agent.loss.target_q_value if v.ags else None, learn_thresholds=False,
+                    thresholds=thr.clone())
+
+
+def _chained_evaluation(agent: LoadedAgent, thresholds: torch.Tensor | None = None):
+    """(metrics, rollout) of the deterministic chained evaluation on :func:`eval_env`."""
+    from srdcil.evaluation import evaluate
+
+    return evaluate(agent.task, eval_env(agent, thresholds), agent.actor)
+
+
+@torch.no_grad()
+def chain_outcomes(agent: LoadedAgent, thresholds: torch.Tensor | None = None) -> dict:
+    """How the chained evaluation left each goal: ``"real"`` (reached), ``"ags"`` (switched by AGS after
+    a near miss, without reaching it) or ``None`` (the chain ended before it; the last goal of a chain
+    that ends without success too).
+
+    Returns ``{"outcomes": [n_goals], "thresholds": [θ_i or None when unset], "goals_reached",
+    "chain_success", "steps"}``: why a run reaches the final goal with goals skipped (the paper's
+    success without every goal for real).
+    """
+    metrics, r = _chained_evaluation(agent, thresholds)
+    idx = r["goal_idx"].reshape(-1).tolist()
+    nidx = r["next", "goal_idx"].reshape(-1).tolist()
+    success = r["next", "success"].reshape(-1).tolist()
+    outcomes: list[str | None] = [None] * agent.n_goals
+    for t, (i, j, ok) in enumerate(zip(idx, nidx, success)):
+        if ok:
+            outcomes[i] = "real"
+        elif j != i:  # left goal i without reaching it: only AGS switches so
+            outcomes[i] = "ags"
+    thr = agent.thresholds if thresholds is None else thresholds
+    return {"outcomes": outcomes,
+            "thresholds": [float(x) if math.isfinite(float(x)) else None for x in thr.reshape(-1).tolist()],
+            "goals_reached": int(metrics["eval/goals_reached"]),
+            "chain_success": bool(metrics["eval/chain_success"] >= 1), "steps": len(idx)}
 
 
 # --------------------------------------------------------------------------------------------
@@ -573,6 +620,11 @@ def _parser() -> argparse.ArgumentParser:
     vc.add_argument("ckpt")
     common(vc, "vc_diagnostic.png")
 
+    ch = sub.add_parser("chain", help="how the chained evaluation left each goal (reached, or skipped by "
+                                      "AGS) and each goal's threshold θ_i; text, no figure")
+    ch.add_argument("ckpts", nargs="+")
+    ch.add_argument("--json", default=None, help="also write the outcomes to this JSON file")
+
     rc = sub.add_parser("run-curve", help="evaluation metrics of run directories vs env steps (metrics.jsonl)")
     rc.add_argument("runs", nargs="+", help="run directories (with a metrics.jsonl)")
     rc.add_argument("--keys", nargs="+", default=list(RUN_CURVE_KEYS), help="metrics to plot, one panel each")
@@ -580,12 +632,35 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: Sequence[str] | None = None) -> Path:
+def print_chain_outcomes(paths: Sequence[str], json_path: str | None = None) -> dict:
+    """``chain`` subcommand: one line per checkpoint with each goal's outcome (R reached, A skipped by
+    AGS, . not reached) and the thresholds. Returns {path: chain_outcomes(...)}."""
+    out = {}
+    for p in paths:
+        agent = load_agent(p)
+        c = out[str(p)] = dict(chain_outcomes(agent), env_steps=agent.frames, method=agent.label)
+        marks = "".join({"real": "R", "ags": "A", None: "."}[o] for o in c["outcomes"])
+        skipped = [i for i, o in enumerate(c["outcomes"]) if o == "ags"]
+        print(f"{p} ({c['method']}, {agent.frames} env steps): goals {marks}  reached {c['goals_reached']}/"
+              f"{len(marks)}, final goal {'reached' if c['chain_success'] else 'not reached'}"
+              + (f", skipped by AGS: {skipped}" if skipped else ""))
+        print("  θ_i: " + " ".join("-" if t is None else f"{t:.2f}" for t in c["thresholds"]))
+    if json_path:
+        import json
+
+        Path(json_path).write_text(json.dumps(out, indent=1) + "\n")
+        print(f"[srdcil.plots] wrote {json_path}")
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> Path | dict:
     import matplotlib
 
     matplotlib.use("Agg")
     torch.set_num_threads(1)
     args = _parser().parse_args(argv)
+    if args.cmd == "chain":
+        return print_chain_outcomes(args.ckpts, args.json)
     if args.cmd == "run-curve":
         out = plot_run_curves(args.runs, args.out, args.keys)
         print(f"[srdcil.plots] wrote {out}")

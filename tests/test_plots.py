@@ -8,6 +8,7 @@ with the entries the training loop writes, so the test follows the real checkpoi
 """
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -228,6 +229,27 @@ def test_eval_rollout_starts_at_the_start_state(agents):
     np.testing.assert_allclose(xy[0], a.task.demo.achieved_goals[0].numpy())
     assert 0 <= last < a.n_goals and 0 <= reached <= a.n_goals
     assert xy.shape[0] >= 2
+
+
+def test_chain_outcomes_tell_real_successes_from_ags_skips(agents, ckpts, tmp_path, capsys):
+    a = agents["db_ags"]
+    n = a.n_goals
+    c = plots.chain_outcomes(a)
+    assert len(c["outcomes"]) == n and c["outcomes"].count("real") == c["goals_reached"]
+    assert c["outcomes"][-1] != "ags"  # AGS never arms at the last goal
+    assert c["thresholds"][-1] is None and c["thresholds"][1] == pytest.approx(float(a.thresholds[1]))
+    # no threshold set: AGS cannot fire, so no goal is skipped
+    assert "ags" not in plots.chain_outcomes(a, torch.full_like(a.thresholds, float("nan")))["outcomes"]
+    # a threshold below every value: AGS fires from the first step of each goal and switches k steps later
+    low = plots.chain_outcomes(a, torch.full_like(a.thresholds, -1e9))
+    assert low["outcomes"][0] == "ags" and low["outcomes"][-1] != "ags"
+    assert low["outcomes"][:-1].count("ags") >= (n - 1) // 2
+    assert all(o is not None for o in low["outcomes"][:-1])  # it got to the last goal by switching
+    out = plots.main(["chain", str(ckpts["db_ags"]), "--json", str(tmp_path / "chain.json")])
+    doc = json.loads((tmp_path / "chain.json").read_text())
+    assert doc[str(ckpts["db_ags"])]["outcomes"] == c["outcomes"] == out[str(ckpts["db_ags"])]["outcomes"]
+    marks = "".join({"real": "R", "ags": "A", None: "."}[o] for o in c["outcomes"])
+    assert f"goals {marks}" in capsys.readouterr().out
 
 
 def test_vc_diagnostic_works_on_a_fetch_checkpoint(tmp_path):

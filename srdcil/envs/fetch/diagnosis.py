@@ -189,17 +189,12 @@ def demo_start_probe(task, actor, goal_index: int, *, max_steps: Optional[int] =
 
 
 def _probe_with_task(path):
-    from srdcil.builders import make_env
-    from srdcil.plots import load_agent
+    from srdcil.plots import eval_env, load_agent
 
     agent = load_agent(path)
     if agent.task.name != "fetch":
         raise ValueError(f"{path}: a '{agent.task.name}' checkpoint; the grasp probe needs a Fetch one")
-    v = agent.variant
-    env = make_env(agent.task, 1, "cpu", ags=v.ags, ags_k=int(agent.cfg.ags.k),
-                   critic=agent.loss.target_q_value if v.ags else None, learn_thresholds=False,
-                   thresholds=agent.thresholds.clone())
-    out = grasp_probe(env, agent.actor)
+    out = grasp_probe(eval_env(agent), agent.actor)
     out["summary"] = {"checkpoint": str(path), "env_steps": agent.frames, **out["summary"]}
     out["agent"] = agent
     replay = torch.load(path, map_location="cpu", weights_only=False).get("replay")
