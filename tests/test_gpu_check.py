@@ -2,12 +2,13 @@
 import os
 import re
 import subprocess
+import sys
 
 from _helpers import ROOT
 
 
 def test_gpu_check_dry_run_prints_every_figure(tmp_path):
-    env = dict(os.environ, OUT=str(tmp_path))
+    env = dict(os.environ, OUT=str(tmp_path), PYTHON=sys.executable)  # the tests' python, venv activated or not
     p = subprocess.run(["bash", "benchmarks/gpu_check.sh", "--dry-run"], cwd=ROOT, capture_output=True, text=True,
                        env=env, timeout=900)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
