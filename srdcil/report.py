@@ -670,7 +670,7 @@ def _summary_markdown(summary: dict, budget, budgets, have_rliable: bool, notes)
     return text, "\n".join(explain)
 
 
-def _per_seed_markdown(by_method: dict, budget) -> str:
+def _per_seed_markdown(by_method: dict, summary: dict, budget) -> str:
     """One row per method with each seed's outcome: what the summary's medians and counts are made of."""
     never = {"first_chain_success_step": f"not within {_fmt_steps(budget)}", "first_strict_success_step": "never"}
 
@@ -685,8 +685,7 @@ def _per_seed_markdown(by_method: dict, budget) -> str:
         runs = sorted(runs, key=lambda r: (r["seed"] is None, r["seed"]))
         fin = [r for r in runs if r["status"] == "finished"]
         running = len(runs) - len(fin)
-        solved = sum(r["first_chain_success_step"] is not None and r["first_chain_success_step"] <= budget
-                     for r in runs)
+        solved = summary[m]["solved"]
         best = ", ".join(f"{r['best_goals_reached']}/{r['n_goals']}" + (
             "" if r["status"] == "finished" else f" (at {_fmt_steps(r['last_env_steps'])}, running)") for r in runs)
         lines.append(f"| `{m}` | {len(fin)}" + (f" (+{running} running)" if running else "")
@@ -773,7 +772,7 @@ def write_report(results_dir, out=None, budget=None, budgets=DEFAULT_BUDGETS, n_
                      "and IQMs.")
     table, explain = _summary_markdown(summary, budget, budgets, iqm is not None, notes)
     files["summary.md"] = out / "summary.md"
-    per_seed = _per_seed_markdown(by_method, budget)
+    per_seed = _per_seed_markdown(by_method, summary, budget)
     files["summary.md"].write_text(f"# Ablation summary: {results_dir}\n\n{table}\n\n{explain}\n\n"
                                    f"## Per seed\n\n{per_seed}\n\n- *running*: no result.json yet (in "
                                    "progress or interrupted); its best goals are those of its evaluations so far.\n")
