@@ -364,7 +364,7 @@ class DCILSACLoss(LossModule):
         if which == "live":
             return None
         if which == "detached":
-            return [p.detach() for p in core.parameters()]
+            return [p.detach() for p in core.compute_params()]
         cache = self.__dict__.get("_cache_target_lists")
         if cache is None:
             cache = self.__dict__["_cache_target_lists"] = {}

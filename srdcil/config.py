@@ -90,6 +90,7 @@ class AGSConfig:
 class EvalConfig:
     interval: int = 1000  # env steps between deterministic chained evaluations
     plot: bool = True  # a picture of the best evaluation rollout
+    value_probe: bool = True  # log V_demo, Q(s, pi(s)) [and V] at each goal's demo state (probe/*)
 
 
 @dataclass

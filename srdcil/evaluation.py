@@ -27,7 +27,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from srdcil.envs.base import Task
 from srdcil.transforms import find_goal_transform
 
-__all__ = ["evaluate_chain", "evaluate", "Evaluator"]
+__all__ = ["evaluate_chain", "evaluate", "Evaluator", "ValueProbe"]
 
 
 @torch.no_grad()
@@ -76,14 +76,51 @@ def evaluate(task: Task, eval_env: TransformedEnv, actor) -> tuple[dict, TensorD
     return metrics, rollout
 
 
+class ValueProbe:
+    """The values of a few demonstration states, read at every evaluation (the paper's Fig. 5 over
+    training): for the first demo state of each goal ``i`` (name ``g<i>``) and each of the task's
+    ``key_demo_steps`` (e.g. Fetch's ``grasp``), ``probe/<name>/v_demo`` (V_demo, the demo's own
+    return), ``probe/<name>/q_pi`` (min_j Q_j(s, g, i, pi_det(s)), live critic) and, with a V network,
+    ``probe/<name>/v`` (learned V(s, g, i)). The networks read ``observation``, ``goal``, ``goal_idx``.
+    """
+
+    def __init__(self, task: Task, gamma: float, actor, qvalue, value=None):
+        from srdcil.goals import demo_value_states
+
+        rows = demo_value_states(task.demo, task.goals, gamma)
+        idx = rows["goal_idx"].reshape(-1)
+        steps = {f"g{i}": int((idx == i).nonzero()[0, 0]) for i in range(len(task.goals)) if bool((idx == i).any())}
+        steps.update({k: int(t) for k, t in task.key_demo_steps.items() if 0 <= int(t) < rows.shape[0]})
+        self.names = list(steps)
+        self.rows = rows[torch.tensor(list(steps.values()))]
+        self.actor, self.qvalue, self.value = actor, qvalue, value
+
+    @torch.no_grad()
+    def __call__(self) -> dict:
+        device = next(self.actor.parameters()).device
+        td = self.rows.select("observation", "goal", "goal_idx").to(device)
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            td = self.actor(td)
+        q = self.qvalue(td)["state_action_value"]
+        q_pi = q.reshape(*q.shape[:1], -1).amin(-1)  # [B, E, 1] -> min over the ensemble
+        out = {"v_demo": self.rows["demo_return"].reshape(-1), "q_pi": q_pi}
+        if self.value is not None:
+            out["v"] = self.value(td)["state_value"].reshape(-1)
+        return {f"probe/{name}/{k}": round(float(v[j]), 5) for j, name in enumerate(self.names)
+                for k, v in out.items()}
+
+
 class Evaluator:
     """Runs :func:`evaluate` and keeps the run's record: best evaluation, first (strict) success.
 
+    ``probe`` (optional, e.g. a :class:`ValueProbe`) adds its metrics to each evaluation's.
     ``state_dict`` / ``load_state_dict`` carry that record across a resume.
     """
 
-    def __init__(self, task: Task, eval_env: TransformedEnv, actor, run_dir: Path, plot: bool = True):
+    def __init__(self, task: Task, eval_env: TransformedEnv, actor, run_dir: Path, plot: bool = True,
+                 probe=None):
         self.task, self.env, self.actor, self.run_dir, self.plot = task, eval_env, actor, Path(run_dir), plot
+        self.probe = probe
         self.best: dict = {"eval/goals_reached": -1}
         self.first_chain: int | None = None
         self.first_strict: int | None = None
@@ -91,6 +128,8 @@ class Evaluator:
 
     def __call__(self, frames: int) -> dict:
         m, rollout = evaluate(self.task, self.env, self.actor)
+        if self.probe is not None:
+            m.update(self.probe())
         self.last = m
         if m["eval/chain_success"] and self.first_chain is None:
             self.first_chain = frames

@@ -48,6 +48,7 @@ same modules with the right sizes and ``in_keys``.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 from typing import Sequence
@@ -134,6 +135,7 @@ class GoalConditionedMLP(nn.Module):
             self.members = nn.ModuleList(stack() for _ in range(ensemble_size))
             member_list = list(self.members)
         self._n_layers = len(dims) - 1
+        self._compute_params: list[torch.Tensor] | None = None  # see computing_with()
         self.register_buffer("obs_loc", torch.zeros(self.obs_dim))
         self.register_buffer("obs_scale", torch.ones(self.obs_dim))
         self.register_buffer("goal_loc", torch.zeros(self.goal_dim))
@@ -203,6 +205,24 @@ class GoalConditionedMLP(nn.Module):
             parts.append(action)
         return torch.cat(parts, -1)
 
+    # ------------------------------------------------------------------ compute copies
+    @contextlib.contextmanager
+    def computing_with(self, params: Sequence[torch.Tensor]):
+        """Within the block, the forward passes multiply by ``params`` (e.g. bf16 copies of the
+        parameters, in ``named_parameters()`` order) instead of the module's own parameters, and
+        parameter lists passed as ``params=`` are cast to their dtype; the input is cast once, the
+        activations stay in that dtype and the output is fp32. Gradients reach ``params``, not the
+        module's parameters (:class:`srdcil.updater.DCILUpdater` copies them back)."""
+        old, self._compute_params = self._compute_params, list(params)
+        try:
+            yield self
+        finally:
+            self._compute_params = old
+
+    def compute_params(self) -> list[torch.Tensor]:
+        """The tensors the forward pass multiplies by (see :meth:`computing_with`)."""
+        return self._compute_params if self._compute_params is not None else list(self.parameters())
+
     @staticmethod
     def _run(x: torch.Tensor, layers, params, offset: int, n: int) -> torch.Tensor:
         for i in range(n):
@@ -218,6 +238,11 @@ class GoalConditionedMLP(nn.Module):
     def mlp(self, x: torch.Tensor, params: Sequence[torch.Tensor] | None = None) -> torch.Tensor:
         """Run the layers on a built input ``[*B, in]`` -> ``[*B, out]`` (or ``[E, *B, out]``)."""
         n = self._n_layers
+        copies = self._compute_params
+        if copies is not None:  # computing_with(): its tensors, in their dtype
+            dtype = copies[0].dtype
+            params = copies if params is None else [p if p.dtype == dtype else p.to(dtype) for p in params]
+            x = x.to(dtype)
         if self.ensemble_size is None:
             return self._run(x, self.layers, params, 0, n)
         return torch.stack(

@@ -23,7 +23,7 @@ from srdcil.builders import (
     make_replay, make_train_env, setup_runtime,
 )
 from srdcil.config import validate
-from srdcil.evaluation import Evaluator
+from srdcil.evaluation import Evaluator, ValueProbe
 from srdcil.run_log import RunLog
 from srdcil.tasks import make_task
 
@@ -54,8 +54,10 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
     live = ckpt_io.LiveState() if task.exact_resume else None
     env = make_train_env(task, cfg, variant, device, critic, final=[live] if live else [])
     thresholds = goal_transform(env).ags_thresholds
+    probe = ValueProbe(task, cfg.optim.gamma, actor, loss.qvalue_network, loss.value_network) \
+        if cfg.eval.value_probe else None
     evaluator = Evaluator(task, make_eval_env(task, cfg, variant, device, critic, thresholds), actor, run_dir,
-                          plot=cfg.eval.plot)
+                          plot=cfg.eval.plot, probe=probe)
     # 4. Mixed replay: training storage (+ relabelling) and demo storage (DB transitions / VC states).
     replay = make_replay(task, cfg, variant, device)
     run = _Run(cfg, task, actor, loss, updater, env, replay, evaluator, live, Progress(next_ckpt=cfg.checkpoint.interval))

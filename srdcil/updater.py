@@ -98,10 +98,12 @@ class DCILUpdater:
         self.mode = mode
         device = loss.log_alpha.device
         self.precision = resolve_precision(precision, device)
-        # bf16: autocast the forward passes only; weights, Adam state, targets and losses stay fp32
-        # (the networks return fp32, so targets and losses are computed in fp32)
-        self._autocast = (torch.autocast(device.type, dtype=torch.bfloat16) if self.precision == "bf16"
-                          else contextlib.nullcontext())
+        # bf16: the matrix products of the update run on bf16 copies of the fp32 parameters (refreshed
+        # before each backward); weights, gradients, Adam state, targets and losses stay fp32 (the
+        # networks return fp32). Networks that are not srdcil's cores are autocast instead.
+        self._copies = _ComputeCopies.for_loss(loss, torch.bfloat16) if self.precision == "bf16" else None
+        self._autocast = (torch.autocast(device.type, dtype=torch.bfloat16)
+                          if self.precision == "bf16" and self._copies is None else contextlib.nullcontext())
         self.tau = float(tau)
         self.target_updater = updater if updater is not None else SoftUpdate(loss, tau=tau)
         use_cg = bool(cudagraphs) and device.type == "cuda"
@@ -187,11 +189,15 @@ class DCILUpdater:
         else:
             self.target_updater.step()
 
+    def _compute(self, *nets: str):
+        """The context of a forward + backward: bf16 copies of ``nets`` (or autocast, or nothing)."""
+        return self._copies(*nets) if self._copies is not None else self._autocast
+
     def _step_joint(self, batch: TensorDictBase) -> TensorDictBase:
-        with self._autocast:
+        with self._compute("actor", "q", "v"):
             out = self.loss(batch)
-        total = sum(v for k, v in out.items() if k.startswith("loss_"))
-        total.backward()
+            total = sum(v for k, v in out.items() if k.startswith("loss_"))
+            total.backward()
         opt = self.optimizers[0]
         opt.step()
         opt.zero_grad(set_to_none=True)
@@ -200,15 +206,15 @@ class DCILUpdater:
 
     def _step_sequential(self, batch: TensorDictBase) -> TensorDictBase:
         crit_opt, act_opt = self.optimizers
-        with self._autocast:
+        with self._compute("actor", "q", "v"):  # the actor samples a' (no gradient into it)
             c = self.loss.critic_loss(batch)
-        sum(v for k, v in c.items() if k.startswith("loss_")).backward()
+            sum(v for k, v in c.items() if k.startswith("loss_")).backward()
         crit_opt.step()
         crit_opt.zero_grad(set_to_none=True)
         self._polyak()
-        with self._autocast:
+        with self._compute("actor", "q"):  # copies of the updated critic
             a = self.loss.actor_loss(batch)
-        sum(v for k, v in a.items() if k.startswith("loss_")).backward()
+            sum(v for k, v in a.items() if k.startswith("loss_")).backward()
         act_opt.step()
         act_opt.zero_grad(set_to_none=True)
         c.update(a)
@@ -219,3 +225,55 @@ class DCILUpdater:
         return self._fn(batch)
 
     __call__ = step
+
+
+class _ComputeCopies:
+    """Low-precision copies of the loss's core networks' parameters, for the matrix products of one
+    update (mixed precision with fp32 master weights).
+
+    ``with copies("actor", "q"):`` refreshes the copies of those networks from their fp32
+    parameters, runs the block's forward passes on them (:meth:`GoalConditionedMLP.computing_with`)
+    and, on leaving, writes their gradients into the fp32 parameters' ``.grad`` (added to what is
+    there), so the optimiser steps the fp32 parameters as usual.
+    """
+
+    def __init__(self, cores: dict, dtype: torch.dtype):
+        self.nets = {}
+        for name, core in cores.items():
+            masters = list(core.parameters())
+            copies = [torch.empty_like(m, dtype=dtype).requires_grad_(m.requires_grad) for m in masters]
+            self.nets[name] = (core, masters, copies)
+
+    @classmethod
+    def for_loss(cls, loss: DCILSACLoss, dtype: torch.dtype) -> "_ComputeCopies | None":
+        """Copies of the actor, twin-Q and V cores of ``loss``; None if one of them is not srdcil's."""
+        from srdcil.networks import GoalConditionedMLP
+
+        actor = loss.__dict__.get("_actor_core")
+        cores = {"actor": getattr(actor, "trunk", None), "q": loss.__dict__.get("_q_core")}
+        if loss.has_value:
+            cores["v"] = loss.__dict__.get("_v_core")
+        if not all(isinstance(c, GoalConditionedMLP) for c in cores.values()):
+            return None
+        return cls(cores, dtype)
+
+    @contextlib.contextmanager
+    def __call__(self, *names: str):
+        used = [self.nets[n] for n in names if n in self.nets]
+        with torch.no_grad():
+            torch._foreach_copy_([c for _, _, cs in used for c in cs], [m for _, ms, _ in used for m in ms])
+        for _, _, cs in used:
+            for c in cs:
+                c.grad = None
+        with contextlib.ExitStack() as stack:
+            for core, _, cs in used:
+                stack.enter_context(core.computing_with(cs))
+            yield
+        for _, masters, cs in used:
+            for m, c in zip(masters, cs):
+                if c.grad is None:
+                    continue
+                if m.grad is None:
+                    m.grad = c.grad.to(m.dtype)
+                else:
+                    m.grad.add_(c.grad)

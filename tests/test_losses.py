@@ -385,7 +385,8 @@ def test_precision_auto_is_bf16_only_on_a_cpu_with_native_bf16(monkeypatch, caps
 
 def test_precision_defaults_auto_on_the_maze_fp32_elsewhere_and_in_experiments_and_tests():
     """auto (bf16 where native) only where bf16 was measured to learn as well (the maze recipes); Fetch and
-    the schema stay fp32; the ablation experiments and the tests pin fp32 whatever the machine."""
+    the schema stay fp32; the maze ablation and the tests pin fp32 whatever the machine; the Fetch ablation runs
+    bf16 where it is native (its runs record their precision)."""
     from _helpers import CONFIG_DIR, config
     from hydra import compose, initialize_config_dir
 
@@ -397,7 +398,7 @@ def test_precision_defaults_auto_on_the_maze_fp32_elsewhere_and_in_experiments_a
         assert raw("sr_dcil_dubins") == "auto" and raw("dcil_ii_dubins") == "auto"
         assert raw("sr_dcil_fetch") == "fp32" and raw("dcil_ii_fetch") == "fp32"
         assert raw("sr_dcil_dubins", "experiment=dubins_ablation") == "fp32"
-        assert raw("sr_dcil_fetch", "experiment=fetch_ablation") == "fp32"
+        assert raw("sr_dcil_fetch", "experiment=fetch_ablation") == "auto"  # bf16 where native: the series' speed
     assert config("sr_dcil_dubins", []).precision == "fp32"
     assert config("sr_dcil_dubins", ["precision=bf16"]).precision == "bf16"
 
@@ -425,6 +426,47 @@ def test_bf16_update_keeps_fp32_weights_targets_and_losses(monkeypatch, mode):
     for k in ("loss_qvalue", "loss_actor", "loss_value"):
         torch.testing.assert_close(outs["bf16"][k], outs["fp32"][k], rtol=0.1, atol=0.02)
         assert not torch.equal(outs["bf16"][k], outs["fp32"][k]) or k == "loss_actor"  # bf16 did run
+
+
+@pytest.mark.parametrize("mode", ["joint", "sequential"])
+def test_bf16_update_steps_the_fp32_weights_as_the_fp32_update_does(monkeypatch, mode):
+    """bf16 runs the update's matrix products on bf16 copies of the weights; their gradients must reach
+    the fp32 parameters: the optimiser sees for every parameter the gradient the fp32 update gives (to
+    bf16 accuracy), it moves them, and outside the update the networks compute in fp32 again."""
+    import srdcil.updater as upd
+
+    monkeypatch.setattr(upd, "bf16_supported", lambda device="cpu": True)
+    td = _random_batch(B=64)
+    grads, moved = {}, {}
+    for prec in ("fp32", "bf16"):
+        torch.manual_seed(0)
+        loss = _small_loss(with_value=True)
+        loss._sample_noise = _row_noise
+        names = {id(p): k for k, p in loss.named_parameters()}
+        before = {k: v.detach().clone() for k, v in loss.named_parameters()}
+        u = DCILUpdater(loss, precision=prec, mode=mode)
+        assert (u._copies is not None) == (prec == "bf16")
+        seen = grads[prec] = {}
+        for opt in u.optimizers:  # record the gradients each optimiser step sees
+            def step(_orig=opt.step, _opt=opt):
+                for g in _opt.param_groups:
+                    for p in g["params"]:
+                        if p.grad is not None:
+                            assert p.grad.dtype == torch.float32
+                            seen[names[id(p)]] = p.grad.detach().clone().flatten()
+                return _orig()
+            opt.step = step
+        u.step(td.clone())
+        moved[prec] = {k for k, v in loss.named_parameters() if k in before and not torch.equal(v, before[k])}
+        for core in (loss._actor_core.trunk, loss._q_core, loss._v_core):
+            assert core._compute_params is None  # fp32 again outside the update (collection, evaluation)
+            assert all(p.dtype == torch.float32 for p in core.parameters())
+    assert grads["bf16"].keys() == grads["fp32"].keys() and len(grads["fp32"]) >= 12
+    assert moved["bf16"] == moved["fp32"] and moved["fp32"]
+    for k, g32 in grads["fp32"].items():
+        g16 = grads["bf16"][k]
+        if g32.norm() > 1e-8:
+            assert torch.nn.functional.cosine_similarity(g16, g32, dim=0) > 0.97, k
 
 
 # --------------------------------------------------------------------------- one Q module (torchrl's SACLoss contract)

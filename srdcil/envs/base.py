@@ -33,6 +33,9 @@ class Task:
     demo_path: str = "<shipped demonstration>"
     # the env's whole state is in its tensordict (no hidden simulator state): resume is then exact
     exact_resume: bool = False
+    # named demonstration steps the value probe reads at every evaluation (beside each goal's first
+    # demo state), e.g. Fetch's last state before the grasp: {"grasp": 62}
+    key_demo_steps: dict = field(default_factory=dict)
 
     @cached_property
     def specs(self) -> dict:

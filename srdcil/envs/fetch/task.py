@@ -39,7 +39,17 @@ def make_task(env_cfg, demo, goals) -> Task:
     def plot_rollout(rollout: TensorDictBase, path: Path) -> None:
         plot_fetch_rollout(rollout, demo, goals, path, obs_dim=obs_dim)
 
-    return Task("fetch", demo, goals, make_base_env, env_cfg.max_steps_per_goal, eval_metrics, plot_rollout)
+    return Task("fetch", demo, goals, make_base_env, env_cfg.max_steps_per_goal, eval_metrics, plot_rollout,
+                key_demo_steps=grasp_step(demo))
+
+
+def grasp_step(demo: Demonstration) -> dict:
+    """``{"grasp": t}``: the last demo state before the gripper command closes (the last action
+    entry turns negative), the state the paper's Fig. 5 probes; ``{}`` without demo actions."""
+    if not demo.has_actions:
+        return {}
+    closing = (demo.actions[:, -1] < 0).nonzero()
+    return {} if closing.numel() == 0 else {"grasp": max(int(closing[0, 0]) - 1, 0)}
 
 
 def object_motion(rollout: TensorDictBase) -> dict:
