@@ -91,6 +91,13 @@ class EvalConfig:
     interval: int = 1000  # env steps between deterministic chained evaluations
     plot: bool = True  # a picture of the best evaluation rollout
     value_probe: bool = True  # log V_demo, Q(s, pi(s)) [and V] at each goal's demo state (probe/*)
+    save_policy: bool = True  # write policy_best.pt and policy_first_success.pt (srdcil.policy)
+    # evaluate (and save as the policy) an exponential moving average of the actor's weights, updated
+    # after every SAC update with this rate tau (ema += tau (actor - ema)); null: the actor itself (the paper)
+    actor_ema: Optional[float] = None
+    # more evaluations of averaged actors at these rates, logged as eval_ema<tau>/* (the main one decides
+    # stops and the policy files); for comparing rates on one training run
+    compare_ema: List[float] = field(default_factory=list)
 
 
 @dataclass
@@ -253,6 +260,9 @@ def validate(cfg: DictConfig) -> DictConfig:
            c.ags.recompute_interval, "null while ags.threshold_window is set (re-reading applies to the paper's "
            "running max: set ags.threshold_window=null)")
     _check(c.eval.interval >= 1, "eval.interval", c.eval.interval, ">= 1")
+    for key, tau in [("eval.actor_ema", c.eval.actor_ema)] + [(f"eval.compare_ema[{i}]", t)
+                                                           for i, t in enumerate(c.eval.compare_ema)]:
+        _check(tau is None or 0.0 < tau <= 1.0, key, tau, "a rate in (0, 1] (or null)")
     _check(c.checkpoint.interval >= 1, "checkpoint.interval", c.checkpoint.interval, ">= 1")
     _check(all(k >= 1 for k in c.checkpoint.keep_at), "checkpoint.keep_at", list(c.checkpoint.keep_at),
            "env steps >= 1")

@@ -6,7 +6,7 @@ is a bug and keeps its traceback.
 """
 from __future__ import annotations
 
-__all__ = ["UserError", "ConfigError", "CheckpointError", "DemoMismatchError", "EXIT_USER_ERROR"]
+__all__ = ["UserError", "ConfigError", "CheckpointError", "DemoMismatchError", "PolicyFileError", "EXIT_USER_ERROR"]
 
 EXIT_USER_ERROR = 2
 
@@ -25,3 +25,7 @@ class CheckpointError(UserError):
 
 class DemoMismatchError(UserError, ValueError):
     """A demonstration that does not fit the environment: the message names the file and the field."""
+
+
+class PolicyFileError(UserError):
+    """A file given as a policy that is not one (or of another format version): the message names it."""

@@ -27,11 +27,12 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from srdcil.envs.base import Task
 from srdcil.transforms import find_goal_transform
 
-__all__ = ["evaluate_chain", "evaluate", "Evaluator", "ValueProbe"]
+__all__ = ["evaluate_chain", "evaluate", "Evaluator", "ValueProbe", "ActorAverages"]
 
 
 @torch.no_grad()
-def evaluate_chain(env, policy, *, max_steps: int | None = None) -> tuple[dict, TensorDictBase]:
+def evaluate_chain(env, policy, *, max_steps: int | None = None,
+                   reset: TensorDictBase | None = None) -> tuple[dict, TensorDictBase]:
     """Roll ``policy`` out deterministically in ``env`` until the chain ends; return (metrics, rollout).
 
     Args:
@@ -39,6 +40,7 @@ def evaluate_chain(env, policy, *, max_steps: int | None = None) -> tuple[dict, 
             ``[1]``; of a larger batch only the first env is scored).
         policy: the actor (run under ``ExplorationType.DETERMINISTIC``: the TanhNormal's ``tanh(loc)``).
         max_steps: rollout length; default ``N * max_steps_per_goal + 1``, the longest a chain can last.
+        reset: a tensordict given to ``env.reset`` (e.g. ``reset_state``: start elsewhere than s_0).
 
     Metrics: ``goals_reached`` (real successes), ``chain_success`` (the final goal was reached; with
     AGS a goal may have been skipped by a switch), ``strict_chain_success`` (every goal reached for
@@ -49,7 +51,11 @@ def evaluate_chain(env, policy, *, max_steps: int | None = None) -> tuple[dict, 
     if max_steps is None:
         max_steps = n_goals * gst.max_steps_per_goal + 1
     with set_exploration_type(ExplorationType.DETERMINISTIC):
-        rollout = env.rollout(int(max_steps), policy, break_when_any_done=True)
+        if reset is None:
+            rollout = env.rollout(int(max_steps), policy, break_when_any_done=True)
+        else:
+            rollout = env.rollout(int(max_steps), policy, break_when_any_done=True, auto_reset=False,
+                                  tensordict=env.reset(reset.clone()))
     while rollout.batch_dims > 1:
         rollout = rollout[0]
     success = rollout["next", gst.key("success")].reshape(-1)
@@ -67,9 +73,11 @@ def evaluate_chain(env, policy, *, max_steps: int | None = None) -> tuple[dict, 
 
 
 @torch.no_grad()
-def evaluate(task: Task, eval_env: TransformedEnv, actor) -> tuple[dict, TensorDictBase]:
+def evaluate(task: Task, eval_env: TransformedEnv, actor, reset: TensorDictBase | None = None
+             ) -> tuple[dict, TensorDictBase]:
     """:func:`evaluate_chain` with the task's extras (maze zone, Fetch task success), as ``eval/*``."""
-    m, rollout = evaluate_chain(eval_env, actor, max_steps=len(task.goals) * task.max_steps_per_goal + 1)
+    m, rollout = evaluate_chain(eval_env, actor, max_steps=len(task.goals) * task.max_steps_per_goal + 1,
+                                reset=reset)
     metrics = {f"eval/{k}": m[k] for k in ("goals_reached", "chain_success", "strict_chain_success", "n_goals",
                                              "steps")}
     metrics.update({f"eval/{k}": v for k, v in task.eval_metrics(rollout).items()})
@@ -110,28 +118,62 @@ class ValueProbe:
                 for k, v in out.items()}
 
 
+class ActorAverages:
+    """Exponential moving averages of an actor's weights (``torch.optim.swa_utils.AveragedModel``), one
+    per rate ``tau``: after each :meth:`update`, ``avg += tau * (actor - avg)``. The input normalisation
+    is frozen before training, so the averages keep the actor's buffers. ``models[tau].module`` is an
+    actor like the original (a TensorDictModule)."""
+
+    def __init__(self, actor, taus):
+        from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+        self.actor = actor
+        self.models = {float(t): AveragedModel(actor, multi_avg_fn=get_ema_multi_avg_fn(1.0 - float(t)),
+                                               use_buffers=False) for t in dict.fromkeys(taus)}
+
+    def update(self) -> None:
+        for m in self.models.values():
+            m.update_parameters(self.actor)
+
+    def state_dict(self) -> dict:
+        return {t: m.state_dict() for t, m in self.models.items()}
+
+    def load_state_dict(self, state: dict) -> None:
+        for t, m in self.models.items():
+            m.load_state_dict(state[t])
+
+
 class Evaluator:
     """Runs :func:`evaluate` and keeps the run's record: best evaluation, first (strict) success.
 
     ``probe`` (optional, e.g. a :class:`ValueProbe`) adds its metrics to each evaluation's.
-    ``state_dict`` / ``load_state_dict`` carry that record across a resume.
+    ``snapshot(frames, metrics) -> dict`` (optional) gives the content of a policy file
+    (:func:`srdcil.policy.policy_state`): then the best evaluation so far is written to
+    ``run_dir/policy_best.pt`` and the first that reached the final goal to
+    ``run_dir/policy_first_success.pt`` (ranking in :mod:`srdcil.policy`). ``prefix`` renames the
+    ``eval/`` metrics (a second evaluator of the same run, e.g. of an averaged actor, logs beside the
+    first). ``state_dict`` / ``load_state_dict`` carry the record across a resume.
     """
 
     def __init__(self, task: Task, eval_env: TransformedEnv, actor, run_dir: Path, plot: bool = True,
-                 probe=None):
+                 probe=None, snapshot=None, prefix: str = "eval/"):
         self.task, self.env, self.actor, self.run_dir, self.plot = task, eval_env, actor, Path(run_dir), plot
-        self.probe = probe
+        self.probe, self.snapshot, self.prefix = probe, snapshot, prefix
         self.best: dict = {"eval/goals_reached": -1}
+        self.best_rank: tuple | None = None
         self.first_chain: int | None = None
         self.first_strict: int | None = None
         self.last: dict = {}
 
     def __call__(self, frames: int) -> dict:
+        from srdcil.policy import evaluation_rank, save_policy
+
         m, rollout = evaluate(self.task, self.env, self.actor)
         if self.probe is not None:
             m.update(self.probe())
         self.last = m
-        if m["eval/chain_success"] and self.first_chain is None:
+        first = bool(m["eval/chain_success"]) and self.first_chain is None
+        if first:
             self.first_chain = frames
         if m["eval/strict_chain_success"] and self.first_strict is None:
             self.first_strict = frames
@@ -140,13 +182,25 @@ class Evaluator:
             self.best = dict(m)
             if self.task.plot_rollout is not None and self.plot:
                 self.task.plot_rollout(rollout, self.run_dir / "eval_best.png")
+        rank = evaluation_rank(m)
+        if self.snapshot is not None and (first or self.best_rank is None or rank >= self.best_rank):
+            state = self.snapshot(frames, m)
+            if self.best_rank is None or rank >= self.best_rank:  # a tie goes to the later policy
+                save_policy(self.run_dir / f"policy_best.pt", state)
+            if first:
+                save_policy(self.run_dir / f"policy_first_success.pt", state)
+        if self.best_rank is None or rank >= self.best_rank:
+            self.best_rank = rank
+        if self.prefix != "eval/":
+            m = {self.prefix + k[len("eval/"):] if k.startswith("eval/") else self.prefix + k: v for k, v in m.items()}
         return m
 
     def state_dict(self) -> dict:
-        return {"best": self.best, "first_chain_success_step": self.first_chain,
+        return {"best": self.best, "best_rank": self.best_rank, "first_chain_success_step": self.first_chain,
                 "first_strict_success_step": self.first_strict}
 
     def load_state_dict(self, state: dict) -> None:
         self.best = state.get("best", self.best)
+        self.best_rank = tuple(state["best_rank"]) if state.get("best_rank") is not None else None
         self.first_chain = state.get("first_chain_success_step")
         self.first_strict = state.get("first_strict_success_step")

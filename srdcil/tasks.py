@@ -43,11 +43,14 @@ def _factory(name: str) -> Callable:
     return mod.make_task
 
 
-def make_task(env_cfg) -> Task:
-    """Build the task named ``env_cfg.name`` from its config (``recipes/config/env/NAME.yaml``)."""
+def make_task(env_cfg, demo: Demonstration | None = None, demo_path: str | None = None) -> Task:
+    """Build the task named ``env_cfg.name`` from its config (``recipes/config/env/NAME.yaml``), with
+    the demonstration ``env_cfg.demo`` names (or ``demo``, e.g. one stored in a policy file)."""
     name = env_cfg.name
     factory = _factory(name)
-    demo = Demonstration.load(env_cfg.demo) if env_cfg.demo else load_shipped(name)
+    if demo is None:
+        demo = Demonstration.load(env_cfg.demo) if env_cfg.demo else load_shipped(name)
+        demo_path = str(env_cfg.demo) if env_cfg.demo else f"<shipped {name} demonstration>"
     goals = extract_goals(
         demo,
         eps=env_cfg.goal_eps,
@@ -57,5 +60,5 @@ def make_task(env_cfg) -> Task:
         max_demo_steps=env_cfg.max_demo_steps,
     )
     task = factory(env_cfg, demo, goals)
-    task.demo_path = str(env_cfg.demo) if env_cfg.demo else f"<shipped {name} demonstration>"
+    task.demo_path = demo_path or "<demonstration>"
     return task

@@ -23,7 +23,8 @@ from srdcil.builders import (
     make_replay, make_train_env, setup_runtime,
 )
 from srdcil.config import validate
-from srdcil.evaluation import Evaluator, ValueProbe
+from srdcil.evaluation import ActorAverages, Evaluator, ValueProbe
+from srdcil.policy import policy_state
 from srdcil.run_log import RunLog
 from srdcil.tasks import make_task
 
@@ -56,11 +57,25 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
     thresholds = goal_transform(env).ags_thresholds
     probe = ValueProbe(task, cfg.optim.gamma, actor, loss.qvalue_network, loss.value_network) \
         if cfg.eval.value_probe else None
-    evaluator = Evaluator(task, make_eval_env(task, cfg, variant, device, critic, thresholds), actor, run_dir,
-                          plot=cfg.eval.plot, probe=probe)
+    # the evaluated actor: the actor itself (the paper) or a moving average of its weights
+    ev_cfg = cfg.eval
+    averages = ActorAverages(actor, ([ev_cfg.actor_ema] if ev_cfg.actor_ema else []) + list(ev_cfg.compare_ema))
+    eval_env = make_eval_env(task, cfg, variant, device, critic, thresholds)
+
+    def evaluator_of(policy, **kw):
+        def snapshot(frames, metrics):
+            return policy_state(actor=policy, loss=loss, task=task, cfg=cfg, thresholds=thresholds, frames=frames,
+                                metrics=metrics, ags=variant.ags)
+        return Evaluator(task, eval_env, policy, run_dir, snapshot=snapshot if ev_cfg.save_policy else None, **kw)
+
+    evaluator = evaluator_of(averages.models[ev_cfg.actor_ema].module if ev_cfg.actor_ema else actor,
+                             plot=ev_cfg.plot, probe=probe)
+    compared = [Evaluator(task, eval_env, averages.models[float(t)].module, run_dir, plot=False,
+                          prefix=f"eval_ema{t:g}/") for t in ev_cfg.compare_ema]
     # 4. Mixed replay: training storage (+ relabelling) and demo storage (DB transitions / VC states).
     replay = make_replay(task, cfg, variant, device)
-    run = _Run(cfg, task, actor, loss, updater, env, replay, evaluator, live, Progress(next_ckpt=cfg.checkpoint.interval))
+    run = _Run(cfg, task, actor, loss, updater, env, replay, evaluator, live, Progress(next_ckpt=cfg.checkpoint.interval),
+               averages, compared)
     if saved is not None:
         run.restore(saved)
         print(f"[srdcil] resumed from {resume} at {run.p.frames} env steps")
@@ -82,12 +97,14 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
                  "train/max_goal_idx": int(data["next", "goal_idx"].max()),
                  "train/attempt_timeouts": int(data["next", "truncated"].sum())}
             if p.frames >= cfg.collector.init_random_frames:  # utd_ratio SAC updates per env step, 80/20
-                m.update(p.update(updater, replay, data.numel() * cfg.optim.utd_ratio))
+                m.update(p.update(updater, replay, data.numel() * cfg.optim.utd_ratio, after_step=averages.update))
             if every and variant.ags and p.frames // every > (p.frames - data.numel()) // every:
                 # AGS θ_i re-read: today's target critic at the stored pairs k steps before real successes
                 run.gst.recompute_thresholds(replay.success_lookback(cfg.ags.k))
             if p.frames >= p.next_eval:  # deterministic chained evaluation from s_0
                 m.update(evaluator(p.frames))
+                for other in compared:
+                    m.update(other(p.frames))
                 p.next_eval += cfg.eval.interval
                 bar.set_postfix(goals=f"{evaluator.last['eval/goals_reached']}/{len(task.goals)}",
                                 chain=int(evaluator.last["eval/chain_success"]), refresh=False)
@@ -140,7 +157,7 @@ class Progress:
         """Wall time of the whole run so far: the earlier legs + this one."""
         return self.wall_s + (time.perf_counter() - self.t_leg0 if self.t_leg0 is not None else 0.0)
 
-    def update(self, updater, replay, credit: float) -> dict:
+    def update(self, updater, replay, credit: float, after_step=None) -> dict:
         """``int`` of the accumulated credit SAC updates; returns the mean losses."""
         self.update_credit += credit
         k = int(self.update_credit)
@@ -152,6 +169,8 @@ class Progress:
         for start in range(0, k, 16):  # the batches of a round are gathered together (same rows as one by one)
             for batch in replay.sample_many(min(16, k - start)):
                 out = updater.step(batch)
+                if after_step is not None:
+                    after_step()
                 losses = out if losses is None else losses + out
         self.t_update += time.perf_counter() - t
         self.n_updates += k
@@ -165,8 +184,10 @@ class Progress:
 class _Run:
     """The run's pieces, for what is done to all of them at once: checkpoint, restore, result."""
 
-    def __init__(self, cfg, task, actor, loss, updater, env, replay, evaluator, live, progress: Progress):
+    def __init__(self, cfg, task, actor, loss, updater, env, replay, evaluator, live, progress: Progress,
+                 averages: ActorAverages, compared: list):
         self.cfg, self.task, self.actor, self.loss, self.updater = cfg, task, actor, loss, updater
+        self.averages, self.compared = averages, compared
         self.env, self.gst, self.replay, self.evaluator, self.live, self.p = (
             env, goal_transform(env), replay, evaluator, live, progress)
 
@@ -181,6 +202,7 @@ class _Run:
             "ags_thresholds": self.gst.ags_thresholds.detach().cpu().clone(),
             "replay": self.replay.state_dict() if keep_replay else None, "live": live,
             "rng": ckpt_io.rng_state(), "goals": self.task.goals.goals.cpu(),
+            "actor_averages": self.averages.state_dict(), "compared": [e.state_dict() for e in self.compared],
             "config": OmegaConf.to_container(self.cfg, resolve=True), **self.evaluator.state_dict(), **extra})
 
     def restore(self, saved: dict) -> None:
@@ -198,6 +220,10 @@ class _Run:
         if self.live is not None and saved.get("live") is not None:
             self.live.restore_on_next_reset(saved["live"])
         self.evaluator.load_state_dict(saved)
+        if self.averages.models:
+            self.averages.load_state_dict(saved["actor_averages"])
+        for e, state in zip(self.compared, saved.get("compared", [])):
+            e.load_state_dict(state)
         frames = int(saved["frames"])
         kept = ("n_updates", "update_credit", "next_eval", "next_ckpt", "wall_s")
         self.p = Progress(**{k: v for k, v in saved.get("progress", {}).items() if k in kept})

@@ -36,6 +36,12 @@ class Task:
     # named demonstration steps the value probe reads at every evaluation (beside each goal's first
     # demo state), e.g. Fetch's last state before the grasp: {"grasp": 62}
     key_demo_steps: dict = field(default_factory=dict)
+    # (sigma, torch.Generator) -> reset_state [K]: the single start state perturbed by N(0, sigma^2) where
+    # the task says how (srdcil.evaluate --start-noise); None: no perturbation defined
+    start_noise: Callable | None = None
+    # (rollout TensorDict [T], reset_state [K] or None) -> list of RGB frames (uint8 [H, W, 3]) of the
+    # rollout, or None where they cannot be drawn here (srdcil.evaluate --video)
+    video_frames: Callable | None = None
 
     @cached_property
     def specs(self) -> dict:

@@ -37,5 +37,43 @@ def make_task(env_cfg, demo, goals) -> Task:
 
         plt.close(fig)
 
+    start_t = torch.tensor(start)
+
+    def start_noise(sigma: float, gen: torch.Generator) -> torch.Tensor:
+        """s_0 + N(0, sigma^2) on x, y (metres; kept inside the start cell, [0.05, 0.95]) and heading (rad)."""
+        s = start_t + sigma * torch.randn(3, generator=gen)
+        s[:2] = s[:2].clamp(0.05, 0.95)
+        return s
+
+    def video_frames(rollout: TensorDictBase, reset_state=None) -> list:
+        xy = torch.cat([rollout["achieved_goal"][:1], rollout["next", "achieved_goal"]], 0).cpu()
+        return maze_frames(xy, demo.achieved_goals.cpu(), goals.goals.cpu(), goals.radius)
+
     return Task("dubins", demo, goals, make_base_env, env_cfg.max_steps_per_goal, eval_metrics, plot_rollout,
-                exact_resume=True)
+                exact_resume=True, start_noise=start_noise, video_frames=video_frames)
+
+
+def maze_frames(xy: torch.Tensor, demo_xy: torch.Tensor, goals: torch.Tensor, radius: float,
+                every: int = 2) -> list:
+    """RGB frames of a car path ``xy [T, 2]`` drawn step by step over the maze, the demonstration and
+    the goals (circles of the goal radius), one frame per ``every`` steps."""
+    import numpy as np
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.patches import Circle
+
+    fig = plot_maze(trajectories=[demo_xy], goals=None)
+    canvas = FigureCanvasAgg(fig)
+    ax = fig.axes[0]
+    for g in goals:
+        ax.add_patch(Circle((float(g[0]), float(g[1])), radius, fill=False, color="red", lw=0.8))
+    line, = ax.plot([], [], "-", color="tab:blue", lw=1.6)
+    car, = ax.plot([], [], "o", color="tab:blue", ms=5)
+    frames = []
+    steps = list(range(0, len(xy), every)) + ([len(xy) - 1] if (len(xy) - 1) % every else [])
+    for t in steps:
+        line.set_data(xy[: t + 1, 0].numpy(), xy[: t + 1, 1].numpy())
+        car.set_data([float(xy[t, 0])], [float(xy[t, 1])])
+        ax.set_title(f"step {t}", fontsize=9)
+        canvas.draw()
+        frames.append(np.asarray(canvas.buffer_rgba())[..., :3].copy())
+    return frames

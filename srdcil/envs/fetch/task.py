@@ -40,7 +40,41 @@ def make_task(env_cfg, demo, goals) -> Task:
         plot_fetch_rollout(rollout, demo, goals, path, obs_dim=obs_dim)
 
     return Task("fetch", demo, goals, make_base_env, env_cfg.max_steps_per_goal, eval_metrics, plot_rollout,
-                key_demo_steps=grasp_step(demo))
+                key_demo_steps=grasp_step(demo), start_noise=object_start_noise(obs_dim),
+                video_frames=lambda rollout, reset_state=None: rollout_frames(rollout, reset_state, obs_dim))
+
+
+def object_start_noise(obs_dim: int):
+    """(sigma, gen) -> the start simulator state with N(0, sigma^2) (metres) added to the object's x, y."""
+    from .core import FetchShelfEnv
+
+    env = FetchShelfEnv(obs_dim=obs_dim)
+    start = torch.as_tensor(env.start_state, dtype=torch.float64)
+    adr = 1 + int(env.obj_qpos_adr)  # the state vector: time, then qpos (the object's free joint: x, y, z, quat)
+    env.close()
+
+    def perturb(sigma: float, gen: torch.Generator) -> torch.Tensor:
+        s = start.clone()
+        s[adr:adr + 2] += sigma * torch.randn(2, generator=gen, dtype=torch.float64)
+        return s
+
+    return perturb
+
+
+def rollout_frames(rollout: TensorDictBase, reset_state=None, obs_dim: int = 604, size=(320, 240)) -> list | None:
+    """MuJoCo frames of a rollout, replayed from its start state; None without a GL backend."""
+    from .core import FetchShelfEnv, rendering_available
+
+    if not rendering_available():
+        return None
+    env = FetchShelfEnv(obs_dim=obs_dim)
+    env.reset(None if reset_state is None else reset_state.numpy())
+    frames = [env.render(*size)]
+    for a in rollout["action"].reshape(-1, rollout["action"].shape[-1]).cpu().numpy():
+        env.step(a)
+        frames.append(env.render(*size))
+    env.close()
+    return frames
 
 
 def grasp_step(demo: Demonstration) -> dict:
