@@ -16,6 +16,7 @@ from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from torchrl._utils import timeit
 
 from srdcil import checkpoint as ckpt_io
 from srdcil.builders import (
@@ -89,30 +90,42 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
     stop_after = 0 if (cfg.stop_after_success is None and cfg.stop_on_chain_success) else cfg.stop_after_success
     reason, t0, every = "budget", time.perf_counter(), cfg.ags.recompute_interval
     p.t_leg0 = t0
+    timeit.erase()  # phase times of this leg: time/<phase>_s (collect, replay, update, eval, checkpoint)
+    batches = iter(collector)
     with _StopSignals() as stop, _progress(cfg, p.frames) as bar:
-        for data in collector:
-            replay.extend(data)  # the storage computes the goal-attempt boundaries
+        while True:
+            with timeit("loop/collect"):
+                data = next(batches, None)
+            if data is None:
+                break
+            with timeit("loop/replay"):
+                replay.extend(data)  # the storage computes the goal-attempt boundaries
             p.frames += data.numel()
             m = {"train/success_rate": float(data["next", "success"].float().mean()),
                  "train/max_goal_idx": int(data["next", "goal_idx"].max()),
                  "train/attempt_timeouts": int(data["next", "truncated"].sum())}
             if p.frames >= cfg.collector.init_random_frames:  # utd_ratio SAC updates per env step, 80/20
-                m.update(p.update(updater, replay, data.numel() * cfg.optim.utd_ratio, after_step=averages.update))
+                with timeit("loop/update"):
+                    m.update(p.update(updater, replay, data.numel() * cfg.optim.utd_ratio, after_step=averages.update))
             if every and variant.ags and p.frames // every > (p.frames - data.numel()) // every:
                 # AGS θ_i re-read: today's target critic at the stored pairs k steps before real successes
                 run.gst.recompute_thresholds(replay.success_lookback(cfg.ags.k))
             if p.frames >= p.next_eval:  # deterministic chained evaluation from s_0
-                m.update(evaluator(p.frames))
-                for other in compared:
-                    m.update(other(p.frames))
+                with timeit("loop/eval"):
+                    m.update(evaluator(p.frames))
+                    for other in compared:
+                        m.update(other(p.frames))
                 p.next_eval += cfg.eval.interval
                 bar.set_postfix(goals=f"{evaluator.last['eval/goals_reached']}/{len(task.goals)}",
                                 chain=int(evaluator.last["eval/chain_success"]), refresh=False)
-            if keep_at and p.frames >= keep_at[0]:
-                run.save(run_dir / f"checkpoint_{keep_at.pop(0)}.pt", with_replay=False)
-            if p.frames >= p.next_ckpt:
-                run.save(ckpt_path)
-                p.next_ckpt += cfg.checkpoint.interval
+            with timeit("loop/checkpoint"):
+                if keep_at and p.frames >= keep_at[0]:
+                    run.save(run_dir / f"checkpoint_{keep_at.pop(0)}.pt", with_replay=False)
+                if p.frames >= p.next_ckpt:
+                    run.save(ckpt_path)
+                    p.next_ckpt += cfg.checkpoint.interval
+            m.update({f"time/{k[len('loop/'):]}_s": round(v, 3) for k, v in timeit.todict(percall=False).items()
+                      if k.startswith("loop/")})
             m["time/env_steps_per_s"], m["time/updates"] = p.rate(t0), p.n_updates
             m["time/wall_s"] = p.wall()  # every leg of a resumed run (the report's wall time to solve)
             log.log(m, p.frames)
