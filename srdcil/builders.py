@@ -22,15 +22,16 @@ from srdcil.envs.base import Task
 __all__ = [
     "Variant", "VARIANTS", "get_variant", "setup_runtime", "make_env", "goal_transform", "make_train_env",
     "make_eval_env", "demo_reset_transforms", "make_agent", "make_loss_and_updater", "make_replay",
-    "make_collector",
+    "make_demo_action_inference", "make_collector",
 ]
 
 
 @dataclass(frozen=True)
 class Variant:
-    demo_buffer: bool  # Demo-Buffer: demo transitions in every SAC batch (needs demo actions)
+    demo_buffer: bool  # Demo-Buffer: demo transitions in every SAC batch (needs demo actions, or idm)
     value_cloning: bool  # SAC-v1 V network regressed to V_demo on demo states
     ags: bool  # Approximate Goal Switching
+    inverse_model: bool = False  # the Demo-Buffer's actions inferred by an inverse model (states only)
 
 
 VARIANTS = {
@@ -39,6 +40,8 @@ VARIANTS = {
     "db_ags": Variant(True, False, True),
     "vc": Variant(False, True, False),
     "vc_ags": Variant(False, True, True),
+    "idm_db": Variant(True, False, False, inverse_model=True),
+    "idm_db_ags": Variant(True, False, True, inverse_model=True),
 }
 
 
@@ -162,8 +165,12 @@ def make_replay(task: Task, cfg: DictConfig, variant: Variant, device):
     from srdcil.errors import DemoMismatchError
     from srdcil.replay import MixedReplay
 
-    demo_td = None
-    if variant.demo_buffer:
+    demo_td, demo_fraction = None, cfg.replay.demo_fraction
+    if variant.inverse_model:  # states only: placeholder actions, no demo rows until the model labels them
+        demo_td = demo_transitions(task.demo, task.goals, cfg.optim.gamma,
+                                   actions=torch.zeros(task.demo.num_steps, task.action_dim))
+        demo_fraction = 0.0
+    elif variant.demo_buffer:
         if not task.demo.has_actions:
             raise DemoMismatchError(f"{task.demo_path}: field 'actions' is missing; method {cfg.method!r} uses the "
                                     "Demo-Buffer, which needs demo actions (a vc* method needs states only)")
@@ -173,7 +180,7 @@ def make_replay(task: Task, cfg: DictConfig, variant: Variant, device):
     r = cfg.replay
     g = torch.Generator().manual_seed(int(cfg.seed))
     replay = MixedReplay(task.goals.goals, task.goals.radius, capacity=int(r.capacity),
-                         batch_size=int(cfg.optim.batch_size), demo=demo_td, demo_fraction=r.demo_fraction,
+                         batch_size=int(cfg.optim.batch_size), demo=demo_td, demo_fraction=demo_fraction,
                          relabel_fraction=r.relabel_fraction, device=device, generator=g)
     # store only what the loss and the relabelling read (fewer entries: faster batches, smaller checkpoints)
     from torchrl.envs import SelectTransform
@@ -181,6 +188,19 @@ def make_replay(task: Task, cfg: DictConfig, variant: Variant, device):
     from srdcil.replay import TRANSITION_KEYS
 
     return replay.append_transform(SelectTransform(*TRANSITION_KEYS), invert=True)
+
+
+def make_demo_action_inference(task: Task, cfg: DictConfig, device):
+    """idm_* methods: the inverse model that labels the state-only demo's Demo-Buffer (:mod:`srdcil.idm`).
+    The demonstration's own actions, if the file has any, reach only its diagnostic (action error)."""
+    from srdcil.goals import demo_transitions
+    from srdcil.idm import DemoActionInference, replay_share_check
+
+    demo = task.demo
+    n_rows = demo_transitions(demo, task.goals, cfg.optim.gamma,
+                              actions=torch.zeros(demo.num_steps, task.action_dim)).shape[0]
+    return DemoActionInference(demo.observations, n_rows, task.action_dim, cfg.idm, cfg.replay.demo_fraction,
+                               device=device, true_actions=demo.actions, replay_check=replay_share_check(task))
 
 
 def make_collector(cfg: DictConfig, env, actor, start_frames: int, device):

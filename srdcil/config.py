@@ -24,7 +24,7 @@ from srdcil.errors import ConfigError
 
 __all__ = ["TrainConfig", "register", "validate", "VARIANT_NAMES"]
 
-VARIANT_NAMES = ("vanilla", "db", "db_ags", "vc", "vc_ags")
+VARIANT_NAMES = ("vanilla", "db", "db_ags", "vc", "vc_ags", "idm_db", "idm_db_ags")
 
 
 @dataclass
@@ -78,6 +78,18 @@ class ReplayConfig:
 
 
 @dataclass
+class IDMConfig:
+    """The inverse dynamics model of the idm_* methods (a state-only demo's Demo-Buffer, srdcil.idm)."""
+
+    hidden: List[int] = field(default_factory=lambda: [256, 256])
+    lr: float = 1e-3
+    batch_size: int = 256
+    utd_ratio: float = 0.25  # model updates per env step (from the end of the random warm-up)
+    warmup_updates: int = 500  # model updates before the first labelling of the demo (no demo rows until then)
+    relabel_interval: int = 1000  # env steps between two labellings of the demo's actions
+
+
+@dataclass
 class AGSConfig:
     k: int = 2  # switch k steps after AGS first fires
     threshold_window: Optional[int] = 2000  # env steps per threshold window; None: the paper's running max
@@ -119,7 +131,7 @@ class LoggerConfig:
 @dataclass
 class TrainConfig:
     method: str = "${variant}"  # the name results are filed under (set by the method group)
-    variant: str = "db_ags"  # vanilla | db | db_ags | vc | vc_ags
+    variant: str = "db_ags"  # vanilla | db | db_ags | vc | vc_ags | idm_db | idm_db_ags
     seed: int = 0
     reset_scheme: str = "single"  # single (SR-DCIL) | demo_states (DCIL-II baseline)
     device: str = "cpu"  # cpu | cuda
@@ -140,6 +152,7 @@ class TrainConfig:
     network: NetworkConfig = field(default_factory=NetworkConfig)
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     ags: AGSConfig = field(default_factory=AGSConfig)
+    idm: IDMConfig = field(default_factory=IDMConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
@@ -250,6 +263,13 @@ def validate(cfg: DictConfig) -> DictConfig:
     _check(0 <= r.demo_fraction < 1, "replay.demo_fraction", r.demo_fraction, "in [0, 1)")
     _check(0 <= r.relabel_fraction <= 1, "replay.relabel_fraction", r.relabel_fraction, "in [0, 1]")
     _check(c.ags.k >= 1, "ags.k", c.ags.k, ">= 1")
+    d = c.idm
+    _check(all(h >= 1 for h in d.hidden), "idm.hidden", list(d.hidden), "layer widths >= 1")
+    _check(d.lr > 0, "idm.lr", d.lr, "> 0")
+    _check(d.batch_size >= 1, "idm.batch_size", d.batch_size, ">= 1")
+    _check(d.utd_ratio > 0, "idm.utd_ratio", d.utd_ratio, "> 0")
+    _check(d.warmup_updates >= 0, "idm.warmup_updates", d.warmup_updates, ">= 0")
+    _check(d.relabel_interval >= 1, "idm.relabel_interval", d.relabel_interval, ">= 1")
     _check(c.ags.threshold_window is None or c.ags.threshold_window >= 1, "ags.threshold_window",
            c.ags.threshold_window, ">= 1 or null (the paper's running max)")
     _check(c.ags.recompute_interval is None or c.ags.recompute_interval >= 1, "ags.recompute_interval",

@@ -188,7 +188,7 @@ def demo_returns(reward: torch.Tensor, terminated: torch.Tensor, gamma: float) -
 
 
 def demo_transitions(demo: Demonstration, goal_seq: GoalSequence, gamma: float, *,
-                     drop_after_last_goal: bool = False) -> TensorDict:
+                     drop_after_last_goal: bool = False, actions: torch.Tensor | None = None) -> TensorDict:
     """Demo-Buffer rows, one per demo transition t -> t+1: ``TensorDict[T]`` (T' < T rows when
     ``goal_seq`` came from ``extract_goals(..., max_demo_steps=K)``: only the K-1 steps it covers).
 
@@ -207,8 +207,11 @@ def demo_transitions(demo: Demonstration, goal_seq: GoalSequence, gamma: float, 
     ``truncated`` (False), ``done``, ``env_terminated`` (False), ``success`` (= reward),
     ``attempt_end`` (index changed or done), ``goal_budget`` (0), ``ags_armed`` (False).
     Reward / next goal / next index / terminated come from :func:`srdcil.rule.dcil_rule`.
+
+    ``actions`` (``[T, A]``) replaces the demo's own (which may then be absent): e.g. placeholders that
+    an inverse model's inference overwrites later (:mod:`srdcil.idm`).
     """
-    if not demo.has_actions:
+    if actions is None and not demo.has_actions:
         raise ValueError(
             "demo_transitions: the demonstration has no actions; the Demo-Buffer needs them "
             "(use demo_value_states for Value Cloning, which needs states only)"
@@ -219,7 +222,7 @@ def demo_transitions(demo: Demonstration, goal_seq: GoalSequence, gamma: float, 
     zeros_l = torch.zeros(n, 1, dtype=torch.long, device=device)
     false = torch.zeros(n, 1, dtype=torch.bool, device=device)
     nxt = td.get("next")
-    td.set("action", demo.actions[:n].clone())
+    td.set("action", (demo.actions if actions is None else actions)[:n].clone())
     td.set("goal_budget", zeros_l.clone())
     td.set("ags_armed", false.clone())
     td.set("is_demo", ~false)

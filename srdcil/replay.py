@@ -473,6 +473,27 @@ class MixedReplay(ReplayBuffer):
         """Demo rows in a batch of ``batch_size`` (0 without a demo)."""
         return int(round(self.demo_fraction * batch_size)) if self._dc_demo_len else 0
 
+    def set_demo_actions(self, actions: torch.Tensor) -> None:
+        """Replace the actions of the demo transitions (e.g. by an inverse model's inference for a
+        state-only demonstration, :mod:`srdcil.idm`); ``actions`` ``[demo_len, A]``."""
+        if self.demo_mode != "transitions":
+            raise ValueError("MixedReplay.set_demo_actions: the demo holds no transitions")
+        key = self.tensor_keys.action
+        old = self._dc_demo_src.get(key)
+        actions = torch.as_tensor(actions).to(device=self.device, dtype=old.dtype)
+        if actions.shape != old.shape:
+            raise ValueError(f"MixedReplay.set_demo_actions: actions of shape {tuple(actions.shape)}, the demo "
+                             f"transitions hold {tuple(old.shape)}")
+        self._dc_demo_src.set(key, actions.clone())
+        if self._dc_demo is not None:
+            self._dc_demo.set(key, actions.clone())
+
+    def sample_training(self, batch_size: int | None = None) -> TensorDictBase:
+        """``batch_size`` training rows only (no demo rows), relabelled and ruled as in :meth:`sample`,
+        through the buffer's transforms."""
+        rows, _ = self._sample_training(self.default_batch_size if batch_size is None else int(batch_size))
+        return self.transform(rows) if len(self.transform) else rows
+
     def _rand(self, n: int) -> torch.Tensor:
         return torch.rand(n, generator=self.generator, device=self.device)
 

@@ -20,8 +20,8 @@ from torchrl._utils import timeit
 
 from srdcil import checkpoint as ckpt_io
 from srdcil.builders import (
-    VARIANTS, get_variant, goal_transform, make_agent, make_collector, make_eval_env, make_loss_and_updater,
-    make_replay, make_train_env, setup_runtime,
+    VARIANTS, get_variant, goal_transform, make_agent, make_collector, make_demo_action_inference, make_eval_env,
+    make_loss_and_updater, make_replay, make_train_env, setup_runtime,
 )
 from srdcil.config import validate
 from srdcil.evaluation import ActorAverages, Evaluator, ValueProbe
@@ -75,8 +75,10 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
                           prefix=f"eval_ema{t:g}/") for t in ev_cfg.compare_ema]
     # 4. Mixed replay: training storage (+ relabelling) and demo storage (DB transitions / VC states).
     replay = make_replay(task, cfg, variant, device)
+    # idm_*: the Demo-Buffer's actions inferred from the demo's states by an inverse model
+    labeller = make_demo_action_inference(task, cfg, device) if variant.inverse_model else None
     run = _Run(cfg, task, actor, loss, updater, env, replay, evaluator, live, Progress(next_ckpt=cfg.checkpoint.interval),
-               averages, compared)
+               averages, compared, labeller)
     if saved is not None:
         run.restore(saved)
         print(f"[srdcil] resumed from {resume} at {run.p.frames} env steps")
@@ -104,6 +106,9 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict:
             m = {"train/success_rate": float(data["next", "success"].float().mean()),
                  "train/max_goal_idx": int(data["next", "goal_idx"].max()),
                  "train/attempt_timeouts": int(data["next", "truncated"].sum())}
+            if labeller is not None and p.frames >= cfg.collector.init_random_frames:
+                with timeit("loop/idm"):  # inverse-model updates; (re)labels the demo's actions when due
+                    m.update(labeller.step(replay, data.numel(), p.frames))
             if p.frames >= cfg.collector.init_random_frames:  # utd_ratio SAC updates per env step, 80/20
                 with timeit("loop/update"):
                     m.update(p.update(updater, replay, data.numel() * cfg.optim.utd_ratio, after_step=averages.update))
@@ -198,9 +203,9 @@ class _Run:
     """The run's pieces, for what is done to all of them at once: checkpoint, restore, result."""
 
     def __init__(self, cfg, task, actor, loss, updater, env, replay, evaluator, live, progress: Progress,
-                 averages: ActorAverages, compared: list):
+                 averages: ActorAverages, compared: list, labeller=None):
         self.cfg, self.task, self.actor, self.loss, self.updater = cfg, task, actor, loss, updater
-        self.averages, self.compared = averages, compared
+        self.averages, self.compared, self.labeller = averages, compared, labeller
         self.env, self.gst, self.replay, self.evaluator, self.live, self.p = (
             env, goal_transform(env), replay, evaluator, live, progress)
 
@@ -216,6 +221,7 @@ class _Run:
             "replay": self.replay.state_dict() if keep_replay else None, "live": live,
             "rng": ckpt_io.rng_state(), "goals": self.task.goals.goals.cpu(),
             "actor_averages": self.averages.state_dict(), "compared": [e.state_dict() for e in self.compared],
+            "idm": None if self.labeller is None else self.labeller.state_dict(),
             "config": OmegaConf.to_container(self.cfg, resolve=True), **self.evaluator.state_dict(), **extra})
 
     def restore(self, saved: dict) -> None:
@@ -237,6 +243,8 @@ class _Run:
             self.averages.load_state_dict(saved["actor_averages"])
         for e, state in zip(self.compared, saved.get("compared", [])):
             e.load_state_dict(state)
+        if self.labeller is not None:
+            self.labeller.load_state_dict(saved["idm"], self.replay)
         frames = int(saved["frames"])
         kept = ("n_updates", "update_credit", "next_eval", "next_ckpt", "wall_s")
         self.p = Progress(**{k: v for k, v in saved.get("progress", {}).items() if k in kept})
