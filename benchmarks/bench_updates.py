@@ -242,12 +242,12 @@ def main():
 def plain_rate_for_recipe(cfg, seconds: float = 5.0) -> float:
     """Plain-PyTorch update rate (the limit) for the networks and batch of a recipe config."""
     from srdcil.tasks import make_task
-    from srdcil.builders import get_variant
+    from srdcil.methods import get_method
 
     task = make_task(cfg.env)
     dims = (task.obs_dim, task.goals.goals.shape[-1], len(task.goals), task.action_dim)
     hidden = tuple(cfg.network.hidden)
-    vc = get_variant(cfg.variant).value_cloning
+    vc = get_method(cfg.method).value_cloning
     torch.manual_seed(0)
     td = make_batch(int(cfg.optim.batch_size), *dims).to(cfg.device)
     pin = plain_inputs(td)

@@ -31,7 +31,9 @@ from torchrl.collectors import Collector
 from torchrl.envs import ActionScaling, Compose, GymEnv, InitTracker, SerialEnv, TransformedEnv, UnaryTransform
 from torchrl.envs.utils import ExplorationType, check_env_specs
 
+from srdcil.cli import command
 from srdcil.demo import Demonstration
+from srdcil.errors import UserError
 from srdcil.evaluation import evaluate_chain
 from srdcil.goals import demo_transitions, extract_goals
 from srdcil.networks import make_actor_from_env, make_qvalue_from_env, set_normalization
@@ -95,6 +97,7 @@ def scripted_demo(steps: int = 80) -> Demonstration:
                          meta={"what": "scripted Pendulum-v1 swing-up from hanging at rest"})
 
 
+@command
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--frames", type=int, default=20_000, help="env steps (all envs together)")
@@ -109,7 +112,15 @@ def main(argv=None) -> dict:
     p.add_argument("--no-ags", action="store_true")
     p.add_argument("--stop-on-success", action="store_true", help="stop at the first full-chain success")
     p.add_argument("--out", type=Path, default=Path("runs/pendulum_swingup"))
+    p.add_argument("--debug", action="store_true", help="tracebacks for user errors")
     a = p.parse_args(argv)
+    for flag, ok, want in (("--frames", a.frames >= 1, ">= 1"), ("--n-envs", a.n_envs >= 1, ">= 1"),
+                           ("--eps", a.eps > 0, "> 0"), ("--radius", a.radius > 0, "> 0"),
+                           ("--t-max", a.t_max >= 1, ">= 1"), ("--demo-steps", a.demo_steps >= 2, ">= 2"),
+                           ("--eval-every", a.eval_every >= 1, ">= 1"), ("--warmup", a.warmup >= 0, ">= 0"),
+                           ("--seed", a.seed >= 0, ">= 0")):
+        if not ok:
+            raise UserError(f"{flag} {getattr(a, flag[2:].replace('-', '_'))}: expected {want}")
     torch.set_num_threads(1)
     torch.manual_seed(a.seed)
     register()

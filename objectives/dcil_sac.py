@@ -24,7 +24,7 @@ With V (``vc`` variants, SAC-v1)::
     V target, demo rows (is_demo True):       demo_return (V_demo)          -> value cloning
 
 Demo rows of a VC batch are *states only*: they enter ``loss_value_cloning`` and nothing else (the
-Q loss and, unless ``actor_on_demo_states=True``, the actor loss use the training rows only).
+Q loss and the actor loss use the training rows only).
 **Normalisation**: the V loss is the paper's *one* MSE over the whole mixed V batch of n rows,
 reported as two entries whose sum is that mean: ``loss_value`` = sum over training rows / n,
 ``loss_value_cloning`` = ``vc_coef`` x sum over demo rows / n (0 when the batch has none), so demo
@@ -100,12 +100,12 @@ class _Rows:
     Means over an empty selection are 0. Sums make the result independent of the row order.
     """
 
-    __slots__ = ("demo", "train", "w_train", "w_demo", "w_actor", "w_all_train", "w_all_demo")
+    __slots__ = ("demo", "train", "w_train", "w_demo", "w_all_train", "w_all_demo")
 
-    def __init__(self, demo: torch.Tensor | None, like: torch.Tensor, actor_on_demo: bool):
+    def __init__(self, demo: torch.Tensor | None, like: torch.Tensor):
         self.demo = demo
         if demo is None:
-            self.train = self.w_train = self.w_demo = self.w_actor = None
+            self.train = self.w_train = self.w_demo = None
             self.w_all_train = self.w_all_demo = None
             return
         d = demo.to(like.dtype)
@@ -113,7 +113,6 @@ class _Rows:
         self.train = ~demo
         self.w_train = t / t.sum().clamp_min(1.0)
         self.w_demo = d / d.sum().clamp_min(1.0)
-        self.w_actor = None if actor_on_demo else self.w_train
         # one mean over every row of the batch (the V batch of Value Cloning): each row weighs 1/n
         n = float(d.numel())
         self.w_all_train = t / n
@@ -138,7 +137,8 @@ class _Rows:
         return (x * self.w_all_demo).sum()
 
     def actor_mean(self, x: torch.Tensor) -> torch.Tensor:
-        return x.mean() if self.w_actor is None else (x * self.w_actor).sum()
+        """The actor's mean: over the training rows (a VC batch's demo rows are states only)."""
+        return x.mean() if self.w_train is None else (x * self.w_train).sum()
 
 
 class DCILSACLoss(LossModule):
@@ -173,17 +173,29 @@ class DCILSACLoss(LossModule):
         vc_coef (float): extra factor on the demo rows of the V batch (``loss_value_cloning``);
             1 (default) is the paper's single MSE over all rows.
         value_cloning (bool): with a V network, regress V on ``demo_return`` at demo rows.
-        actor_on_demo_states (bool): VC mode: also train the actor at the demo states.
 
     Output (TensorDict, batch ``[]``): ``loss_qvalue``, ``loss_actor``, [``loss_alpha``],
     [``loss_value``, ``loss_value_cloning``], and detached ``alpha``, ``entropy``, ``q_mean``,
-    ``target_mean``.
+    ``target_mean`` (:attr:`out_keys`; ``select_out_keys(...)`` keeps a subset).
     """
 
     @dataclass
     class _AcceptedKeys:
-        """Configurable keys. ``reward`` and ``terminated`` are read under ``"next"``, as are the
-        next observation / goal / goal_idx."""
+        """Names of the entries the loss reads, settable with ``loss.set_keys(name=...)``.
+
+        Attributes:
+            observation: the state s (and, under ``"next"``, s').
+            goal: the goal g_i pursued in s (under ``"next"``: the goal after a switch, g_{i+1} on success).
+            goal_idx: the goal index i, int64 ``[*B, 1]`` (under ``"next"``: the index after a switch).
+            action: the action taken in s.
+            reward: read under ``"next"``: 1 on success at g_i, else 0.
+            terminated: read under ``"next"``: success at the last goal (or a true env termination);
+                the only flag that stops bootstrapping (a timeout never does).
+            is_demo: VC batches: the rows that are demo states (read only with a V network and value cloning).
+            demo_return: VC batches: V_demo of the demo rows (read with ``is_demo``).
+            state_action_value: the entry a Q module that is not srdcil's twin Q writes.
+            state_value: the entry a V module that is not srdcil's writes.
+        """
 
         observation: NestedKey = "observation"
         goal: NestedKey = "goal"
@@ -191,12 +203,10 @@ class DCILSACLoss(LossModule):
         action: NestedKey = "action"
         reward: NestedKey = "reward"
         terminated: NestedKey = "terminated"
-        done: NestedKey = "done"
         is_demo: NestedKey = "is_demo"
         demo_return: NestedKey = "demo_return"
         state_action_value: NestedKey = "state_action_value"
         state_value: NestedKey = "state_value"
-        action_log_prob: NestedKey = "action_log_prob"
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
@@ -226,9 +236,9 @@ class DCILSACLoss(LossModule):
         entropy_backup: bool = False,
         vc_coef: float = 1.0,
         value_cloning: bool = True,
-        actor_on_demo_states: bool = False,
     ):
         super().__init__()
+        self._in_keys = self._out_keys = None
         self.convert_to_functional(actor, "actor_network", create_target_params=False)
         self._q_prefix, q_core = _find_core(qvalue, TwinQ)
         if q_core is not None:
@@ -257,7 +267,6 @@ class DCILSACLoss(LossModule):
         self.entropy_backup = bool(entropy_backup)
         self.vc_coef = float(vc_coef)
         self.value_cloning = bool(value_cloning) and self.has_value
-        self.actor_on_demo_states = bool(actor_on_demo_states)
         if target_clip is not None:
             lo, hi = float(target_clip[0]), float(target_clip[1])
             if not lo < hi:
@@ -295,6 +304,14 @@ class DCILSACLoss(LossModule):
             target_entropy = -float(action_dim)
         self.register_buffer("target_entropy", torch.tensor(float(target_entropy)))
 
+    @property
+    def core_networks(self) -> dict:
+        """srdcil's core modules the loss calls on tensors (its fast path): ``{"actor": GaussianPolicyNet,
+        "q": TwinQ, "v": GoalConditionedMLP}``, the entries present when the networks are srdcil's. They hold
+        the live parameters (the loss's ``*_network_params``); they are kept outside the module tree."""
+        cores = {"actor": self.__dict__["_actor_core"], "q": self.__dict__["_q_core"], "v": self.__dict__["_v_core"]}
+        return {k: v for k, v in cores.items() if v is not None}
+
     def _apply(self, fn, *args, **kwargs):
         # ``loss.to(device / dtype)`` moves the ``*_params`` TensorDicts; parameters keep their
         # identity (so the stateful modules follow) but buffers (the input normalisation) are new
@@ -321,37 +338,46 @@ class DCILSACLoss(LossModule):
             return None
 
     # ------------------------------------------------------------------ keys
-    @property
-    def in_keys(self):
+    def _set_in_keys(self) -> None:
         k = self.tensor_keys
         keys = [k.observation, k.goal, k.goal_idx, k.action,
                 _next(k.observation), _next(k.goal), _next(k.goal_idx),
                 _next(k.reward), _next(k.terminated)]
         if self.value_cloning:
             keys += [k.is_demo, k.demo_return]
-        return keys
-
-    @in_keys.setter
-    def in_keys(self, values):  # LossModule base may try to set it; keys come from tensor_keys
-        pass
+        self._in_keys = keys
 
     @property
-    def out_keys(self):
-        keys = ["loss_qvalue", "loss_actor"]
-        if self.learn_alpha:
-            keys.append("loss_alpha")
-        if self.has_value:
-            keys.append("loss_value")
-            if self.value_cloning:
-                keys.append("loss_value_cloning")
-        return keys + ["alpha", "entropy", "q_mean", "target_mean"]
+    def in_keys(self) -> list:
+        """The entries :meth:`forward` reads (from :attr:`tensor_keys`)."""
+        if self._in_keys is None:
+            self._set_in_keys()
+        return self._in_keys
+
+    @in_keys.setter
+    def in_keys(self, values) -> None:
+        self._in_keys = values
+
+    @property
+    def out_keys(self) -> list:
+        """The entries :meth:`forward` returns (``select_out_keys`` narrows them)."""
+        if self._out_keys is None:
+            keys = ["loss_qvalue", "loss_actor"]
+            if self.learn_alpha:
+                keys.append("loss_alpha")
+            if self.has_value:
+                keys.append("loss_value")
+                if self.value_cloning:
+                    keys.append("loss_value_cloning")
+            self._out_keys = keys + ["alpha", "entropy", "q_mean", "target_mean"]
+        return self._out_keys
 
     @out_keys.setter
-    def out_keys(self, values):
-        pass
+    def out_keys(self, values) -> None:
+        self._out_keys = list(values)
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
+        self._in_keys = None  # recomputed from the new key names
 
     # ------------------------------------------------------------------ parameter lists
     def _param_list(self, which: str, net: str) -> list[torch.Tensor]:
@@ -461,13 +487,11 @@ class DCILSACLoss(LossModule):
 
     def _rows(self, td: TensorDictBase, like: torch.Tensor) -> "_Rows":
         """Row selection of this batch (all rows unless VC mode with an ``is_demo`` entry)."""
-        if not self.value_cloning:
-            return _Rows(None, like, self.actor_on_demo_states)
-        m = td.get(self.tensor_keys.is_demo, None)
+        m = td.get(self.tensor_keys.is_demo, None) if self.value_cloning else None
         if m is None:
-            return _Rows(None, like, self.actor_on_demo_states)
+            return _Rows(None, like)
         m = m.bool()
-        return _Rows(m if m.shape == like.shape else m.reshape(like.shape), like, self.actor_on_demo_states)
+        return _Rows(m if m.shape == like.shape else m.reshape(like.shape), like)
 
     @torch.no_grad()
     def compute_target(self, td: TensorDictBase, alpha: torch.Tensor | None = None) -> torch.Tensor:
@@ -493,77 +517,86 @@ class DCILSACLoss(LossModule):
         return self._q_all(td.get(k.observation), td.get(k.goal), td.get(k.goal_idx),
                            td.get(k.action), "target").amin(0)
 
-    def _critic_terms(self, td, obs, goal, idx, act, logp_pi, q_pi, rows, alpha, out):
-        y = self.compute_target(td, alpha)
+    # ------------------------------------------------------------------ terms (tensors in, tensors out)
+    def qvalue_loss(self, td: TensorDictBase, obs, goal, idx, act, rows: _Rows):
+        """``(loss_qvalue, Q [E, *B, 1], y [*B, 1])``: twin-Q MSBE against the DCIL target."""
+        y = self.compute_target(td)
         q = self._q_all(obs, goal, idx, act, "live")  # [E, *B, 1]
         # where(): demo rows of a VC batch carry filler actions / next states; keep them out even if NaN
-        out["loss_qvalue"] = rows.train_mean((q - y).pow(2).sum(0), guard=True)
-        if self.has_value:
-            v = self._v(obs, goal, idx, "live")
-            v_target = (q_pi - alpha * logp_pi).detach()
-            # Value Cloning (paper): ONE mean over the whole mixed V batch, split in two entries whose
-            # sum is that mean; demo rows thus weigh exactly their share of rows (20 %).
-            out["loss_value"] = rows.batch_share_train((v - v_target).pow(2))
-            if self.value_cloning:
-                ret = td.get(self.tensor_keys.demo_return, None)
-                if rows.demo is None or ret is None:
-                    out["loss_value_cloning"] = v.new_zeros(())
-                else:
-                    sq_vc = (v - ret.to(v.dtype).reshape(v.shape)).pow(2)
-                    out["loss_value_cloning"] = self.vc_coef * rows.batch_share_demo(sq_vc)
-        with torch.no_grad():
-            out["q_mean"] = rows.train_mean(q.mean(0))
-            out["target_mean"] = rows.train_mean(y)
+        return rows.train_mean((q - y).pow(2).sum(0), guard=True), q, y
 
-    def _actor_terms(self, logp_pi, q_pi, rows, alpha, out):
-        out["loss_actor"] = rows.actor_mean(alpha * logp_pi - q_pi)
+    def value_losses(self, td: TensorDictBase, obs, goal, idx, q_pi, logp_pi, rows: _Rows, alpha):
+        """``(loss_value, loss_value_cloning or None)``: SAC-v1 V regression on the training rows, and
+        Value Cloning on the demo rows. Together they are ONE mean over the whole mixed V batch (the
+        paper), so demo rows weigh exactly their share of rows (20 %)."""
+        v = self._v(obs, goal, idx, "live")
+        v_target = (q_pi - alpha * logp_pi).detach()
+        loss_value = rows.batch_share_train((v - v_target).pow(2))
+        if not self.value_cloning:
+            return loss_value, None
+        ret = td.get(self.tensor_keys.demo_return, None)
+        if rows.demo is None or ret is None:
+            return loss_value, v.new_zeros(())
+        sq_vc = (v - ret.to(v.dtype).reshape(v.shape)).pow(2)
+        return loss_value, self.vc_coef * rows.batch_share_demo(sq_vc)
+
+    def actor_losses(self, logp_pi, q_pi, rows: _Rows, alpha):
+        """``(loss_actor, loss_alpha or None, entropy)``: ``alpha log pi - min_j Q_j`` (Q detached)."""
+        loss_actor = rows.actor_mean(alpha * logp_pi - q_pi)
         lp = logp_pi.detach()
-        if self.learn_alpha:
-            out["loss_alpha"] = -self.log_alpha * rows.actor_mean(lp + self.target_entropy)
-        out["entropy"] = -rows.actor_mean(lp)
+        loss_alpha = -self.log_alpha * rows.actor_mean(lp + self.target_entropy) if self.learn_alpha else None
+        return loss_actor, loss_alpha, -rows.actor_mean(lp)
+
+    def _critic_out(self, td, obs, goal, idx, act, logp_pi, q_pi, rows, alpha) -> dict:
+        loss_q, q, y = self.qvalue_loss(td, obs, goal, idx, act, rows)
+        out = {"loss_qvalue": loss_q}
+        if self.has_value:
+            out["loss_value"], vc = self.value_losses(td, obs, goal, idx, q_pi, logp_pi, rows, alpha)
+            if vc is not None:
+                out["loss_value_cloning"] = vc
+        with torch.no_grad():
+            out["q_mean"], out["target_mean"] = rows.train_mean(q.mean(0)), rows.train_mean(y)
+        return out
+
+    def _actor_out(self, logp_pi, q_pi, rows, alpha) -> dict:
+        loss_actor, loss_alpha, entropy = self.actor_losses(logp_pi, q_pi, rows, alpha)
+        out = {"loss_actor": loss_actor, "entropy": entropy, "alpha": alpha}
+        if loss_alpha is not None:
+            out["loss_alpha"] = loss_alpha
+        return out
+
+    def _policy_terms(self, td, obs, goal, idx):
+        """``a~ ~ pi(.|s)``, ``log pi(a~|s)``, the batch's rows and ``min_j Q_j(s, a~)`` (Q detached)."""
+        a_pi, logp_pi = self._actor_sample(obs, goal, idx)
+        rows = self._rows(td, logp_pi)
+        return logp_pi, rows, self._q_all(obs, goal, idx, a_pi, "detached").amin(0)
+
+    def _selected(self, out: dict) -> TensorDictBase:
+        return TensorDict({k: out[k] for k in self.out_keys if k in out}, batch_size=[])
 
     # ------------------------------------------------------------------ forward
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Joint losses (one backward on their sum is correct, see the module docstring)."""
         obs, goal, idx, *_ = self._read(tensordict)
-        act = tensordict.get(self.tensor_keys.action)
-        alpha = self.alpha
-        a_pi, logp_pi = self._actor_sample(obs, goal, idx)
-        rows = self._rows(tensordict, logp_pi)
-        q_pi = self._q_all(obs, goal, idx, a_pi, "detached").amin(0)
-        out = {}
-        self._critic_terms(tensordict, obs, goal, idx, act, logp_pi, q_pi, rows, alpha, out)
-        self._actor_terms(logp_pi, q_pi, rows, alpha, out)
-        out["alpha"] = alpha
-        return TensorDict(self._ordered(out), batch_size=[])
+        act, alpha = tensordict.get(self.tensor_keys.action), self.alpha
+        logp_pi, rows, q_pi = self._policy_terms(tensordict, obs, goal, idx)
+        out = self._critic_out(tensordict, obs, goal, idx, act, logp_pi, q_pi, rows, alpha)
+        out.update(self._actor_out(logp_pi, q_pi, rows, alpha))
+        return self._selected(out)
 
     def critic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Critic-side losses only (``loss_qvalue`` [+ ``loss_value``, ``loss_value_cloning``])."""
         obs, goal, idx, *_ = self._read(tensordict)
-        act = tensordict.get(self.tensor_keys.action)
-        alpha = self.alpha
-        with torch.no_grad():
-            if self.has_value:
-                a_pi, logp_pi = self._actor_sample(obs, goal, idx)
-                q_pi = self._q_all(obs, goal, idx, a_pi, "detached").amin(0)
-            else:
-                logp_pi = q_pi = None
+        act, alpha = tensordict.get(self.tensor_keys.action), self.alpha
+        logp_pi = q_pi = None
+        if self.has_value:
+            with torch.no_grad():
+                logp_pi, _, q_pi = self._policy_terms(tensordict, obs, goal, idx)
         rows = self._rows(tensordict, act[..., :1])
-        out = {}
-        self._critic_terms(tensordict, obs, goal, idx, act, logp_pi, q_pi, rows, alpha, out)
-        return TensorDict(out, batch_size=[])
+        return self._selected(self._critic_out(tensordict, obs, goal, idx, act, logp_pi, q_pi, rows, alpha))
 
     def actor_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Actor-side losses only (``loss_actor`` [+ ``loss_alpha``]) with the current critic."""
         obs, goal, idx, *_ = self._read(tensordict)
-        alpha = self.alpha
-        a_pi, logp_pi = self._actor_sample(obs, goal, idx)
-        rows = self._rows(tensordict, logp_pi)
-        q_pi = self._q_all(obs, goal, idx, a_pi, "detached").amin(0)
-        out = {}
-        self._actor_terms(logp_pi, q_pi, rows, alpha, out)
-        out["alpha"] = alpha
-        return TensorDict(out, batch_size=[])
-
-    def _ordered(self, out: dict) -> dict:
-        return {k: out[k] for k in self.out_keys if k in out}
+        logp_pi, rows, q_pi = self._policy_terms(tensordict, obs, goal, idx)
+        return self._selected(self._actor_out(logp_pi, q_pi, rows, self.alpha))

@@ -1,12 +1,16 @@
-"""DCIL-II baseline on the Dubins maze: resets to demonstrated states.
+"""The DCIL-II baseline on the Dubins maze (resets to demonstrated states; = sr_dcil_dubins.py method=dcil_ii).
 
     python recipes/dcil_ii_dubins.py seed=1
 
-Same loop as sr_dcil_dubins.py (:func:`srdcil.training.train`); only ``reset_scheme`` differs.
+The algorithm itself is :func:`srdcil.training.train` (shared by every recipe).
 """
-from pathlib import Path
+from srdcil.cli import exit_on_interrupt
 
-from srdcil.recipe import hydra_main
+exit_on_interrupt()  # Ctrl-C during the imports: one line, exit 130
+
+from pathlib import Path  # noqa: E402
+
+from srdcil.recipe import hydra_main  # noqa: E402
 
 main = hydra_main("dcil_ii_dubins", Path(__file__).parent / "config")
 

@@ -1,12 +1,16 @@
-"""DCIL-II baseline on the Fetch grasp-and-shelve task: resets to demonstrated states.
+"""The DCIL-II baseline on Fetch (resets to demonstrated states; = sr_dcil_fetch.py method=dcil_ii).
 
     python recipes/dcil_ii_fetch.py seed=1
 
-Same loop as sr_dcil_fetch.py (:func:`srdcil.training.train`); only ``reset_scheme`` differs.
+The algorithm itself is :func:`srdcil.training.train` (shared by every recipe).
 """
-from pathlib import Path
+from srdcil.cli import exit_on_interrupt
 
-from srdcil.recipe import hydra_main
+exit_on_interrupt()  # Ctrl-C during the imports: one line, exit 130
+
+from pathlib import Path  # noqa: E402
+
+from srdcil.recipe import hydra_main  # noqa: E402
 
 main = hydra_main("dcil_ii_fetch", Path(__file__).parent / "config")
 

@@ -1,13 +1,12 @@
 """Builders of a run's pieces, one ``make_*`` per piece (the torchrl sota-recipe layout).
 
 Each builder reads the typed config (:mod:`srdcil.config`) and returns a torchrl object; the loop
-in :mod:`srdcil.training` only wires them together. Everything variant-specific is a flag of
-:data:`VARIANTS`: there is no copy per variant.
+in :mod:`srdcil.training` only wires them together. Everything method-specific is a flag of
+:data:`srdcil.methods.METHODS`: there is no copy per method.
 """
 from __future__ import annotations
 
 import random
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -18,38 +17,13 @@ from torchrl.envs.utils import ExplorationType
 from srdcil.errors import ConfigError
 from srdcil.goals import demo_transitions, demo_value_states
 from srdcil.envs.base import Task
+from srdcil.methods import Method
 
 __all__ = [
-    "Variant", "VARIANTS", "get_variant", "setup_runtime", "make_env", "goal_transform", "make_train_env",
+    "setup_runtime", "make_env", "make_train_env",
     "make_eval_env", "demo_reset_transforms", "make_agent", "make_loss_and_updater", "make_replay",
     "make_demo_action_inference", "make_collector",
 ]
-
-
-@dataclass(frozen=True)
-class Variant:
-    demo_buffer: bool  # Demo-Buffer: demo transitions in every SAC batch (needs demo actions, or idm)
-    value_cloning: bool  # SAC-v1 V network regressed to V_demo on demo states
-    ags: bool  # Approximate Goal Switching
-    inverse_model: bool = False  # the Demo-Buffer's actions inferred by an inverse model (states only)
-
-
-VARIANTS = {
-    "vanilla": Variant(False, False, False),
-    "db": Variant(True, False, False),
-    "db_ags": Variant(True, False, True),
-    "vc": Variant(False, True, False),
-    "vc_ags": Variant(False, True, True),
-    "idm_db": Variant(True, False, False, inverse_model=True),
-    "idm_db_ags": Variant(True, False, True, inverse_model=True),
-}
-
-
-def get_variant(name: str) -> Variant:
-    try:
-        return VARIANTS[name]
-    except KeyError:
-        raise ConfigError(f"variant={name!r}: expected one of {', '.join(VARIANTS)}") from None
 
 
 def setup_runtime(cfg: DictConfig) -> torch.device:
@@ -85,16 +59,6 @@ def make_env(task: Task, n_envs: int, device, *, ags: bool, ags_k: int, critic=N
                           Compose(gst, *extra_transforms, InitTracker(), *final_transforms))
 
 
-def goal_transform(env: TransformedEnv):
-    """The env's :class:`GoalSequenceTransform`."""
-    from srdcil.transforms import GoalSequenceTransform
-
-    for t in env.transform:
-        if isinstance(t, GoalSequenceTransform):
-            return t
-    raise LookupError("env has no GoalSequenceTransform")
-
-
 def demo_reset_transforms(task: Task, device) -> list:
     """DCIL-II: each training attempt starts from the demonstrated state where the previous goal was
     reached, goals sampled by 1/success-rate (``DemoResetTransform``)."""
@@ -107,23 +71,23 @@ def demo_reset_transforms(task: Task, device) -> list:
                                max_steps_per_goal=task.max_steps_per_goal)]
 
 
-def make_train_env(task: Task, cfg: DictConfig, variant: Variant, device, critic, final=()) -> TransformedEnv:
+def make_train_env(task: Task, cfg: DictConfig, method: Method, device, critic, final=()) -> TransformedEnv:
     """Training env: ``env.n_envs`` copies reset to s_0 (SR-DCIL) or to demo states (DCIL-II)."""
     extra = demo_reset_transforms(task, device) if cfg.reset_scheme == "demo_states" else []
-    env = make_env(task, int(cfg.env.n_envs), device, ags=variant.ags, ags_k=int(cfg.ags.k), critic=critic,
+    env = make_env(task, int(cfg.env.n_envs), device, ags=method.ags, ags_k=int(cfg.ags.k), critic=critic,
                    threshold_window=cfg.ags.threshold_window, extra_transforms=extra, final_transforms=final)
     env.set_seed(int(cfg.seed))
     return env
 
 
-def make_eval_env(task: Task, cfg: DictConfig, variant: Variant, device, critic, thresholds) -> TransformedEnv:
+def make_eval_env(task: Task, cfg: DictConfig, method: Method, device, critic, thresholds) -> TransformedEnv:
     """Evaluation env: one env from s_0, sharing (not learning) the training env's AGS thresholds."""
-    return make_env(task, 1, device, ags=variant.ags, ags_k=int(cfg.ags.k), critic=critic,
+    return make_env(task, 1, device, ags=method.ags, ags_k=int(cfg.ags.k), critic=critic,
                     learn_thresholds=False, thresholds=thresholds)
 
 
 # ------------------------------------------------------------------------------------------ agent
-def make_agent(task: Task, cfg: DictConfig, variant: Variant, device):
+def make_agent(task: Task, cfg: DictConfig, method: Method, device):
     """Actor, twin Q (and V for ``vc*``), sized from the env's specs, inputs normalised by the demo."""
     from srdcil.networks import make_actor, make_qvalue, make_value, set_normalization
 
@@ -134,7 +98,7 @@ def make_agent(task: Task, cfg: DictConfig, variant: Variant, device):
     hidden = tuple(cfg.network.hidden)
     actor = make_actor(obs_dim, goal_dim, n_goals, act_dim, hidden)
     qvalue = make_qvalue(obs_dim, goal_dim, n_goals, act_dim, hidden)
-    value = make_value(obs_dim, goal_dim, n_goals, hidden) if variant.value_cloning else None
+    value = make_value(obs_dim, goal_dim, n_goals, hidden) if method.value_cloning else None
     # Fixed input normalisation from the demonstration. The authors freeze running statistics after
     # 500 random warm-up steps; the demo covers the region the agent must learn, so its statistics
     # serve the same purpose and are known before the first step.
@@ -160,22 +124,22 @@ def make_loss_and_updater(cfg: DictConfig, actor, qvalue, value):
 
 
 # ------------------------------------------------------------------------------------------ data
-def make_replay(task: Task, cfg: DictConfig, variant: Variant, device):
+def make_replay(task: Task, cfg: DictConfig, method: Method, device):
     """Training storage (+ DCIL relabelling) and the demo storage (DB transitions / VC states)."""
     from srdcil.errors import DemoMismatchError
     from srdcil.replay import MixedReplay
 
     demo_td, demo_fraction = None, cfg.replay.demo_fraction
-    if variant.inverse_model:  # states only: placeholder actions, no demo rows until the model labels them
+    if method.inverse_model:  # states only: placeholder actions, no demo rows until the model labels them
         demo_td = demo_transitions(task.demo, task.goals, cfg.optim.gamma,
                                    actions=torch.zeros(task.demo.num_steps, task.action_dim))
         demo_fraction = 0.0
-    elif variant.demo_buffer:
+    elif method.demo_buffer:
         if not task.demo.has_actions:
             raise DemoMismatchError(f"{task.demo_path}: field 'actions' is missing; method {cfg.method!r} uses the "
                                     "Demo-Buffer, which needs demo actions (a vc* method needs states only)")
         demo_td = demo_transitions(task.demo, task.goals, cfg.optim.gamma)
-    elif variant.value_cloning:
+    elif method.value_cloning:
         demo_td = demo_value_states(task.demo, task.goals, cfg.optim.gamma)
     r = cfg.replay
     g = torch.Generator().manual_seed(int(cfg.seed))

@@ -9,11 +9,17 @@ same seed, a run stopped and resumed gives the same numbers as the run that was 
 hidden simulator state (Fetch) restarts its trajectories from the start state.
 
 Writes are atomic (a per-process temporary file, then a rename); a failed write (e.g. a full disk)
-raises :class:`CheckpointError` naming the path. A checkpoint is checked against the run before it
-is used: same method, environment, goals and network shapes, or one line saying what differs.
+raises :class:`CheckpointError` naming the path. :func:`load` reads and :func:`upgrade`\ s a checkpoint
+(the one place that knows older layouts); :func:`check_resume` compares it with the run about to
+continue it: the same goals, and the same configuration except the options listed in
+:data:`RESUME_MAY_CHANGE` (the budget, evaluation, logging, progress, checkpoint cadence), which
+are applied and named; any other difference is refused with one line listing the keys and both
+values (``resume_allow_changes=true`` applies them anyway, with a warning). A checkpoint without
+the replay (a ``keep_at`` snapshot) is refused unless ``resume_without_replay=true``.
 """
 from __future__ import annotations
 
+import logging
 import os
 import random
 from pathlib import Path
@@ -26,9 +32,16 @@ from torchrl.envs.transforms import Transform
 
 from srdcil.errors import CheckpointError
 
-__all__ = ["FORMAT", "LiveState", "rng_state", "set_rng_state", "save", "load", "check_compatible"]
+__all__ = ["FORMAT", "LiveState", "rng_state", "set_rng_state", "save", "load", "upgrade", "check_resume",
+           "ags_thresholds", "RESUME_MAY_CHANGE"]
 
-FORMAT = 2  # 2: full run state (exact resume); 1 (no "format" key): networks, optimisers, replay
+FORMAT = 2  # 2: full run state (exact resume)
+log = logging.getLogger("srdcil")
+
+#: options a resumed run may change (prefixes of dotted keys); every other difference is refused
+RESUME_MAY_CHANGE = ("collector.total_frames", "stop_after_success", "stop_on_chain_success", "eval.interval",
+                     "eval.plot", "logger.", "progress", "debug", "num_threads", "checkpoint.interval",
+                     "checkpoint.keep_at", "resume", "resume_allow_changes", "resume_without_replay")
 
 
 class LiveState(Transform):
@@ -111,7 +124,7 @@ def save(path: Path, state: dict) -> None:
 
 
 def load(path) -> dict:
-    """Read a checkpoint; a missing, truncated or foreign file is a :class:`CheckpointError`."""
+    """Read a checkpoint and :func:`upgrade` it; a missing, truncated or foreign file is a :class:`CheckpointError`."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"resume={path}: no such checkpoint file")
@@ -121,27 +134,74 @@ def load(path) -> dict:
         why = (str(e).splitlines() or [type(e).__name__])[0][:120]
         raise CheckpointError(f"{path}: not a readable checkpoint (truncated or corrupt: {why})") from e
     if not isinstance(ckpt, dict) or not {"frames", "actor", "loss", "config"} <= set(ckpt):
-        raise CheckpointError(f"{path}: not an srdcil checkpoint (no frames / actor / loss / config entries)")
+        hint = " (a policy file: it has no training state)" if isinstance(ckpt, dict) and \
+            ckpt.get("kind") == "srdcil-policy" else ""
+        raise CheckpointError(f"{path}: not an srdcil checkpoint (no frames / actor / loss / config entries){hint}")
+    return upgrade(ckpt, path)
+
+
+def upgrade(ckpt: dict, path="checkpoint") -> dict:
+    """Bring a checkpoint of an earlier srdcil to today's layout, in place (the one place that knows
+    older layouts): the AGS window's step count, once a key of its own, goes into the goal
+    transform's state (``_extra_state``), and the saved config is read on today's schema
+    (:func:`srdcil.config.from_saved`: options added since get their defaults). Format 1 (before the
+    exact-resume layout, never published with results) is refused."""
+    from srdcil.config import from_saved
+
+    if ckpt.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: checkpoint format {ckpt.get('format', 1)!r}; this srdcil reads format "
+                              f"{FORMAT} (the full run state, written since the exact-resume release)")
+    window = ckpt.pop("ags_window_steps", None)
+    ckpt.pop("ags_thresholds", None)  # also in the transform's state
+    transforms = ckpt.get("transforms") or {}
+    for key in [k for k in transforms if k.endswith("ags_thresholds")]:
+        extra = key[: -len("ags_thresholds")] + "_extra_state"
+        transforms.setdefault(extra, {"window_steps": int(window or 0)})
+    ckpt["config"] = OmegaConf.to_container(from_saved(ckpt["config"]), resolve=True)
     return ckpt
 
 
-def check_compatible(ckpt: dict, cfg: DictConfig, goals: torch.Tensor, path) -> None:
-    """The checkpoint belongs to this run: same method, env, goals and networks; else one line."""
-    saved = OmegaConf.create(ckpt["config"])
+def ags_thresholds(ckpt: dict) -> torch.Tensor | None:
+    """The AGS thresholds θ_i held by a checkpoint's goal transform (NaN = unset), or None."""
+    for key, value in (ckpt.get("transforms") or {}).items():
+        if key.endswith("ags_thresholds") and not key.endswith("ags_thresholds_next"):
+            return value.detach().float().cpu().clone()
+    return None
 
-    def get(c, key):
-        return OmegaConf.select(c, key, default=None)
 
-    for key in ("method", "variant", "reset_scheme", "env.name", "network.hidden", "optim.update_mode"):
-        a, b = get(saved, key), get(cfg, key)
-        a = list(a) if OmegaConf.is_list(a) else a
-        b = list(b) if OmegaConf.is_list(b) else b
-        if key == "method" and a is None:  # checkpoints from before the method group
-            continue
-        if a != b:
-            raise CheckpointError(f"{path}: checkpoint has {key}={a!r}, this run {key}={b!r}")
+def _flat(d, prefix="") -> dict:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict) and v:
+            out.update(_flat(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def check_resume(ckpt: dict, cfg: DictConfig, goals: torch.Tensor, path) -> list[str]:
+    """The checkpoint belongs to this run and this run may continue it (see the module docstring);
+    returns the changed options that are applied. Else a :class:`CheckpointError` of one line."""
     g = ckpt.get("goals")
     if g is not None and (g.shape != goals.shape or not torch.allclose(g, goals.cpu())):
         raise CheckpointError(f"{path}: checkpoint was trained on other goals ({tuple(g.shape)[0]} goals) than "
                               f"this run's demonstration gives ({tuple(goals.shape)[0]}): same env.demo and "
                               "env.goal_eps are needed")
+    saved, now = _flat(ckpt["config"]), _flat(OmegaConf.to_container(cfg, resolve=True))
+    changed = sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
+    may = [k for k in changed if k.startswith(RESUME_MAY_CHANGE)]
+    refused = [k for k in changed if k not in may]
+    if refused and not cfg.resume_allow_changes:
+        diff = "; ".join(f"{k}: {saved.get(k)!r} -> {now.get(k)!r}" for k in refused[:6])
+        more = f" (and {len(refused) - 6} more)" if len(refused) > 6 else ""
+        raise CheckpointError(f"{path}: this run's config differs from the checkpoint's in {diff}{more}; "
+                              "resume with the checkpoint's values, or resume_allow_changes=true to apply them")
+    if refused:
+        log.warning("resume_allow_changes: applying %s", ", ".join(f"{k}={now.get(k)!r}" for k in refused))
+    if may:
+        log.info("resume: applying %s", ", ".join(f"{k}={now.get(k)!r}" for k in may))
+    if ckpt.get("replay") is None and not cfg.resume_without_replay:
+        raise CheckpointError(f"{path}: the checkpoint holds no replay (a keep_at snapshot, or "
+                              "checkpoint.save_replay=false): resume_without_replay=true continues with an empty one")
+    return may + refused

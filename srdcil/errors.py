@@ -6,7 +6,8 @@ is a bug and keeps its traceback.
 """
 from __future__ import annotations
 
-__all__ = ["UserError", "ConfigError", "CheckpointError", "DemoMismatchError", "PolicyFileError", "EXIT_USER_ERROR"]
+__all__ = ["UserError", "ConfigError", "CheckpointError", "DemoMismatchError", "PolicyFileError", "NonFiniteLossError",
+           "RunDirError", "EXIT_USER_ERROR"]
 
 EXIT_USER_ERROR = 2
 
@@ -29,3 +30,12 @@ class DemoMismatchError(UserError, ValueError):
 
 class PolicyFileError(UserError):
     """A file given as a policy that is not one (or of another format version): the message names it."""
+
+
+class NonFiniteLossError(UserError):
+    """A loss became NaN or inf (usually a learning rate, temperature or scale out of range): the run
+    stopped before applying that update, its checkpoint holds the last finite state."""
+
+
+class RunDirError(UserError):
+    """A run directory that another run holds, or that holds a run this one would overwrite."""

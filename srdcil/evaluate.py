@@ -20,14 +20,14 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 from pathlib import Path
 
 import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
-from srdcil.errors import EXIT_USER_ERROR, UserError
+from srdcil.cli import command
+from srdcil.errors import UserError
 
 __all__ = ["evaluate_policy", "wilson_interval", "main"]
 
@@ -147,42 +147,30 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+@command
 def main(argv=None) -> dict:
     args = _parser().parse_args(argv)
-    try:
-        from srdcil.policy import load_policy
+    from srdcil.policy import load_policy
 
-        torch.set_num_threads(1)
-        if args.video is not None and args.video.suffix.lower() not in (".gif", ".mp4"):
-            raise UserError(f"--video {args.video}: expected a .gif or .mp4 file name")
-        policy = load_policy(args.policy)
-        out = evaluate_policy(policy, args.episodes, action_noise=args.action_noise, start_noise=args.start_noise,
-                              seed=args.seed, progress=True, keep_rollouts=1 if args.video else 0)
-        s = out["summary"]
-        lo, hi = s["chain_success_ci95"]
-        print(f"{s['env']}: {s['episodes']} episode(s) of {args.policy} (env steps {policy.env_steps}; action noise "
-              f"{args.action_noise:g}, start noise {args.start_noise:g}, seed {args.seed})")
-        print(f"chain_success_rate: {s['chain_success_rate']:.3f} (95 % CI {lo:.3f}-{hi:.3f})")
-        lo, hi = s["strict_success_ci95"]
-        print(f"strict_success_rate: {s['strict_success_rate']:.3f} (95 % CI {lo:.3f}-{hi:.3f})")
-        lo, hi = s["goals_reached_ci95"]
-        print(f"goals_reached_mean: {s['goals_reached_mean']:.2f} of {s['n_goals']} (95 % CI {lo:.2f}-{hi:.2f})")
-        if args.video is not None:
-            print(_write_video(policy, *out["rollouts"][0], args.video))
-        if args.json is not None:
-            try:
-                args.json.write_text(json.dumps({"summary": s, "episodes": out["episodes"]}, indent=1) + "\n")
-            except OSError as e:
-                raise UserError(f"--json {args.json}: cannot write ({e.strerror or e})") from e
-        return out
-    except UserError as e:
-        if args.debug:
-            raise
-        print(f"srdcil: error: {e}", file=sys.stderr)
-        sys.exit(EXIT_USER_ERROR)
-    except KeyboardInterrupt:
-        print("srdcil: interrupted", file=sys.stderr)
-        sys.exit(130)
+    torch.set_num_threads(1)
+    if args.video is not None and args.video.suffix.lower() not in (".gif", ".mp4"):
+        raise UserError(f"--video {args.video}: expected a .gif or .mp4 file name")
+    policy = load_policy(args.policy)
+    out = evaluate_policy(policy, args.episodes, action_noise=args.action_noise, start_noise=args.start_noise,
+                          seed=args.seed, progress=True, keep_rollouts=1 if args.video else 0)
+    s = out["summary"]
+    print(f"{s['env']}: {s['episodes']} episode(s) of {args.policy} (env steps {policy.env_steps}; action noise "
+          f"{args.action_noise:g}, start noise {args.start_noise:g}, seed {args.seed})")
+    for name, key in (("chain_success_rate", "chain_success"), ("strict_success_rate", "strict_success")):
+        lo, hi = s[f"{key}_ci95"]
+        print(f"{name}: {s[name]:.3f} (95 % CI {lo:.3f}-{hi:.3f})")
+    lo, hi = s["goals_reached_ci95"]
+    print(f"goals_reached_mean: {s['goals_reached_mean']:.2f} of {s['n_goals']} (95 % CI {lo:.2f}-{hi:.2f})")
+    if args.video is not None:
+        print(_write_video(policy, *out["rollouts"][0], args.video))
+    if args.json is not None:
+        args.json.write_text(json.dumps({"summary": s, "episodes": out["episodes"]}, indent=1) + "\n")
+    return out
 
 
 if __name__ == "__main__":

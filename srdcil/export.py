@@ -19,13 +19,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 from pathlib import Path
 
 import torch
 from torch import nn
 
-from srdcil.errors import EXIT_USER_ERROR, UserError
+from srdcil.cli import command
+from srdcil.errors import UserError
 
 __all__ = ["export_policy", "main", "EXPORT_VERSION"]
 
@@ -102,24 +102,19 @@ def _save(program, path: Path) -> None:
         raise UserError(f"{path}: cannot write ({e.strerror or e})") from e
 
 
+@command
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(prog="python -m srdcil.export", description=__doc__.split("\n\n")[0])
     p.add_argument("policy", help="a policy file (policy_best.pt, policy_first_success.pt)")
     p.add_argument("--out", type=Path, required=True, help="folder for actor.pt2 [critic.pt2] policy.json")
     p.add_argument("--debug", action="store_true", help="tracebacks for user errors")
     args = p.parse_args(argv)
-    try:
-        from srdcil.policy import load_policy
+    from srdcil.policy import load_policy
 
-        info = export_policy(load_policy(args.policy), args.out)
-        files = ["actor.pt2"] + (["critic.pt2"] if info["ags"] else []) + ["policy.json"]
-        print(f"exported {args.policy} to {args.out}: {', '.join(files)}")
-        return info
-    except UserError as e:
-        if args.debug:
-            raise
-        print(f"srdcil: error: {e}", file=sys.stderr)
-        sys.exit(EXIT_USER_ERROR)
+    info = export_policy(load_policy(args.policy), args.out)
+    files = ["actor.pt2"] + (["critic.pt2"] if info["ags"] else []) + ["policy.json"]
+    print(f"exported {args.policy} to {args.out}: {', '.join(files)}")
+    return info
 
 
 if __name__ == "__main__":

@@ -20,14 +20,8 @@ biases (DCIL-II code). ``init="torch"`` keeps PyTorch's default ``nn.Linear`` in
 
 The twin critic evaluates both Q-nets in one module call on one shared input (normalisation and
 one-hot built once), each member with its own ``nn.Linear`` weights (``F.linear`` = ``addmm``).
-Measured on the 2-core CPU of this project, 1 thread, batch 256, input 25, for the Q work of one
-SAC update (Q(s,a) forward+backward, target Q(s',a') forward, Q(s,ã) with detached weights and
-input gradient), median of 5 interleaved rounds: separate members 11.5-12.0 ms vs stacked weights
-with ``torch.baddbmm`` 12.9-13.4 ms at hidden (400, 300), 6.5-6.8 vs 6.8-6.9 ms at (256, 256);
-stacked storage indexed per member (``W[j]``) loses the gain again (12.2-13.2 ms), and
-``torch.func.vmap`` over ``functional_call`` was the slowest in forward+backward alone (~1.2x).
-In the profile of a full update the ``bmm`` calls of ``baddbmm``'s backward were the largest single
-cost. So the members are kept separate; the target copy is still a plain tensor list.
+The members stay separate modules (stacked weights with ``baddbmm`` or ``vmap`` were slower on
+the CPU: docs/measurements.md, "Twin Q layout").
 
 Every core module accepts ``params=`` (a flat list of tensors in ``named_parameters()`` order) so a
 loss can evaluate it with target or detached parameters without swapping module attributes.
@@ -348,14 +342,12 @@ def set_normalization(*modules: nn.Module, obs=None, goal=None) -> int:
             if isinstance(sub, GoalConditionedMLP) and id(sub) not in seen:
                 seen.add(id(sub))
                 sub.set_normalization(obs, goal)
-    for m in modules:  # a loss keeps its networks outside the module tree
-        for name in ("_actor_core", "_q_core", "_v_core"):
-            core = getattr(m, "__dict__", {}).get(name)
-            if core is not None:
-                for sub in core.modules():
-                    if isinstance(sub, GoalConditionedMLP) and id(sub) not in seen:
-                        seen.add(id(sub))
-                        sub.set_normalization(obs, goal)
+    for m in modules:  # a loss keeps its networks outside the module tree (DCILSACLoss.core_networks)
+        for core in getattr(m, "core_networks", {}).values():
+            for sub in core.modules():
+                if isinstance(sub, GoalConditionedMLP) and id(sub) not in seen:
+                    seen.add(id(sub))
+                    sub.set_normalization(obs, goal)
     return len(seen)
 
 

@@ -21,6 +21,12 @@ evaluation that selected it, under a format name and version.
 Which evaluation is "best": strict chain success (every goal reached for real) first, then chain
 success (the final goal reached), then the number of goals reached; a tie goes to the later
 evaluation (the policy with more training behind the same score).
+
+The networks of a saved run are rebuilt in one place, :func:`rebuild_networks` (the run's saved
+config on today's schema, its task, the library's builders); :func:`load_policy` loads a policy
+file's weights into them, :func:`load_checkpoint_agent` a training checkpoint's (actor and the
+whole loss: twin Q, its target copy, V for Value Cloning runs), which the figures and diagnoses
+read.
 """
 from __future__ import annotations
 
@@ -34,7 +40,7 @@ from torch import nn
 from srdcil.errors import PolicyFileError
 
 __all__ = ["POLICY_KIND", "POLICY_VERSION", "Policy", "policy_state", "save_policy", "load_policy",
-           "evaluation_rank", "DeterministicActor"]
+           "evaluation_rank", "DeterministicActor", "rebuild_networks", "CheckpointAgent", "load_checkpoint_agent"]
 
 POLICY_KIND = "srdcil-policy"
 POLICY_VERSION = 1
@@ -64,7 +70,7 @@ def policy_state(*, actor, loss, task, cfg, thresholds: torch.Tensor, frames: in
         "goals": task.goals.goals.detach().cpu().clone(), "radius": float(task.goals.radius),
         "max_steps_per_goal": int(task.max_steps_per_goal),
         "ags": {"k": int(cfg.ags.k), "thresholds": thresholds.detach().cpu().clone()} if ags else None,
-        "env": {"name": str(cfg.env.name), "options": OmegaConf.to_container(cfg.env.options or {}, resolve=True)},
+        "env": {"name": str(cfg.env.name), "options": OmegaConf.to_container(cfg.env.options, resolve=True) if cfg.env.options else {}},
         "demo": {**{k: (None if getattr(demo, k) is None else getattr(demo, k).detach().cpu().clone())
                     for k in ("states", "achieved_goals", "actions", "observations", "sim_states")},
                  "meta": dict(demo.meta)},
@@ -157,7 +163,6 @@ def _read(path: Path) -> dict:
 def load_policy(path) -> Policy:
     """Rebuild a policy file's actor (and AGS critic) and its task on the CPU, in eval mode;
     :class:`~srdcil.errors.PolicyFileError` (one line) for a file that is not a policy of this version."""
-    from srdcil.builders import get_variant, make_agent
     from srdcil.config import from_saved
     from srdcil.demo import Demonstration
     from srdcil.tasks import make_task
@@ -168,8 +173,7 @@ def load_policy(path) -> Policy:
     task = make_task(cfg.env, demo=Demonstration(**state["demo"]), demo_path=f"{path} (its demonstration)")
     if task.goals.goals.shape != state["goals"].shape or not torch.allclose(task.goals.goals, state["goals"]):
         raise PolicyFileError(f"{path}: the stored demonstration gives other goals than the stored goal table")
-    variant = get_variant(cfg.variant)
-    actor, qvalue, _ = make_agent(task, cfg, variant, "cpu")
+    actor, qvalue, _ = rebuild_networks(cfg, task)
     actor.load_state_dict(state["actor"])
     actor.eval()
     ags = state.get("ags")
@@ -180,3 +184,82 @@ def load_policy(path) -> Policy:
         qvalue = None
     return Policy(path, actor, qvalue, task, cfg, None if ags is None else ags["thresholds"].float(),
                   int(ags["k"]) if ags else int(cfg.ags.k), int(state["env_steps"]), dict(state["evaluation"]))
+
+
+def rebuild_networks(cfg, task, *, value: bool = False):
+    """``(actor, twin Q, V or None)`` of a run's config (on today's schema, :func:`srdcil.config.from_saved`)
+    for ``task``, on the CPU, with the run's shapes and the demonstration's input normalisation: the
+    modules a saved state dict is loaded into. ``value``: build the V network too (Value Cloning runs)."""
+    from srdcil.builders import make_agent
+    from srdcil.methods import Method
+
+    # make_agent reads one flag of the method: whether to build the V network
+    return make_agent(task, cfg, Method(demo_buffer=False, value_cloning=value, ags=False), "cpu")
+
+
+@dataclass
+class CheckpointAgent:
+    """A training checkpoint rebuilt on the CPU, in eval mode (see :func:`load_checkpoint_agent`)."""
+
+    path: Path
+    cfg: object  # the run's config (DictConfig, today's schema)
+    task: object  # srdcil.envs.base.Task of the run's env options
+    actor: nn.Module  # ProbabilisticActor
+    loss: nn.Module  # DCILSACLoss: twin Q (+ target copy), V (+ target) for Value Cloning runs
+    thresholds: torch.Tensor  # [N] AGS thresholds, NaN = unset
+    frames: int  # env steps the checkpoint was written at
+
+    @property
+    def has_value(self) -> bool:
+        """Whether the run has a V network (Value Cloning)."""
+        return bool(getattr(self.loss, "has_value", False))
+
+    @property
+    def ags(self) -> bool:
+        """Whether AGS can fire: some threshold is set. A run without AGS never sets one, and a run with
+        AGS but none set yet evaluates as one without (a NaN threshold never fires)."""
+        return bool(torch.isfinite(self.thresholds).any())
+
+    @property
+    def gamma(self) -> float:
+        return float(self.cfg.optim.gamma)
+
+    @property
+    def n_goals(self) -> int:
+        return len(self.task.goals)
+
+    def make_env(self, thresholds: torch.Tensor | None = None):
+        """One env of the task as the run's chained evaluation sees it: from the single start state, AGS
+        (when a threshold is set) with the checkpoint's thresholds (or ``thresholds``), not learnt
+        further, reading the target critic."""
+        from srdcil.builders import make_env
+
+        thr = (self.thresholds if thresholds is None else thresholds).clone()
+        ags = bool(torch.isfinite(thr).any())
+        return make_env(self.task, 1, "cpu", ags=ags, ags_k=int(self.cfg.ags.k),
+                        critic=self.loss.target_q_value if ags else None, learn_thresholds=False, thresholds=thr)
+
+
+def load_checkpoint_agent(path) -> CheckpointAgent:
+    """Rebuild a training checkpoint's task, actor and loss (:func:`rebuild_networks`, then its weights)
+    on the CPU, in eval mode. The V network is built when the checkpoint's loss has one."""
+    from srdcil.builders import make_loss_and_updater
+    from srdcil.config import from_saved
+    from srdcil.tasks import make_task
+
+    from srdcil import checkpoint
+
+    path = Path(path)
+    ckpt = checkpoint.load(path)  # upgraded to today's layout
+    cfg = from_saved(ckpt["config"])
+    task = make_task(cfg.env)
+    has_value = any(k.startswith("value_network_params.") for k in ckpt["loss"])
+    actor, qvalue, value = rebuild_networks(cfg, task, value=has_value)
+    loss, _ = make_loss_and_updater(cfg, actor, qvalue, value)
+    actor.load_state_dict(ckpt["actor"])
+    loss.load_state_dict(ckpt["loss"])
+    actor.eval()
+    loss.eval()
+    thr = checkpoint.ags_thresholds(ckpt)
+    thr = torch.full((len(task.goals),), float("nan")) if thr is None else thr
+    return CheckpointAgent(path, cfg, task, actor, loss, thr, int(ckpt.get("frames", 0)))

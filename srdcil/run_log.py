@@ -11,6 +11,7 @@ A failed write (e.g. a full disk) raises :class:`UserError` naming the file.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 from pathlib import Path
@@ -90,14 +91,33 @@ def _make_logger(cfg: DictConfig, run_dir: Path, exp_name: str):
             raise UserError("logger.backend=tensorboard needs the tensorboard package: "
                             "pip install -e \".[tensorboard]\" (or logger.backend=csv)") from None
     if backend == "wandb":
-        mode = cfg.logger.mode
+        try:
+            import wandb  # noqa: F401
+        except ImportError:
+            raise UserError("logger.backend=wandb needs the wandb package: pip install -e \".[wandb]\" "
+                            "(or logger.backend=csv)") from None
+        mode = os.environ.get("WANDB_MODE") or cfg.logger.mode  # the environment's choice wins (e.g. CI: disabled)
         if mode == "online" and not (os.environ.get("WANDB_API_KEY") or _wandb_logged_in()):
-            print("[srdcil] wandb: not logged in, logging offline (upload later with `wandb sync`)")
+            logging.getLogger("srdcil").info("wandb: not logged in, logging offline (upload later with `wandb sync`)")
             mode = "offline"
         return get_logger("wandb", logger_name=str(run_dir), experiment_name=exp_name,
                           wandb_kwargs={"mode": mode, "project": cfg.logger.project, "group": cfg.logger.group,
-                                        "config": OmegaConf.to_container(cfg, resolve=True)})
+                                        "config": OmegaConf.to_container(cfg, resolve=True),
+                                        "id": wandb_run_id(run_dir), "resume": "allow"})
     return get_logger(backend, logger_name=str(run_dir), experiment_name=exp_name)
+
+
+def wandb_run_id(run_dir: Path) -> str:
+    """The wandb run id of this run dir (``wandb_run_id`` in it, made at the first start): a resumed run
+    continues its wandb run instead of opening a new one."""
+    path = Path(run_dir) / "wandb_run_id"
+    if path.is_file():
+        return path.read_text().strip()
+    import uuid
+
+    rid = uuid.uuid4().hex[:12]
+    path.write_text(rid + "\n")
+    return rid
 
 
 def _wandb_logged_in() -> bool:

@@ -39,7 +39,7 @@ def _factory(name: str) -> Callable:
         if e.name not in (f"srdcil.envs.{name}", f"srdcil.envs.{name}.task"):
             raise
         raise ConfigError(f"env.name={name!r}: no srdcil/envs/{name}/task.py and no registered task "
-                          f"(registered: {', '.join(sorted(_REGISTRY)) or 'none'}; shipped: dubins, fetch)") from None
+                          f"(registered: {', '.join(sorted(_REGISTRY)) or 'none'}; shipped: dubins, fetch, dmc_manipulator)") from None
     return mod.make_task
 
 

@@ -6,14 +6,18 @@ parameter TensorDicts (``*_network_params`` and ``target_*_params``) and torchrl
 from __future__ import annotations
 
 import contextlib
+import logging
 
 import torch
 from tensordict import TensorDictBase
 from torch import nn
 
+from srdcil.errors import NonFiniteLossError
 from srdcil.objectives import DCILSACLoss
 
 __all__ = ["DCILUpdater", "bf16_supported", "resolve_precision"]
+
+log = logging.getLogger("srdcil")
 
 
 def bf16_supported(device: torch.device | str = "cpu") -> bool:
@@ -42,12 +46,12 @@ def resolve_precision(precision: str, device) -> str:
         if torch.device(device).type != "cpu":
             return "fp32"
         if bf16_supported(device):
-            print("[srdcil] precision=auto: bf16 (this CPU has native bf16 matrix units; precision=fp32 to turn it off)")
+            log.info("precision=auto: bf16 (this CPU has native bf16 matrix units; precision=fp32 to turn it off)")
             return "bf16"
-        print("[srdcil] precision=auto: fp32 (this CPU has no native bf16 matrix units: no AVX512-BF16 / AMX)")
+        log.info("precision=auto: fp32 (this CPU has no native bf16 matrix units: no AVX512-BF16 / AMX)")
         return "fp32"
     if precision == "bf16" and not bf16_supported(device):
-        print(f"[srdcil] precision=bf16: this {torch.device(device).type} has no native bf16 matrix units "
+        log.warning(f"precision=bf16: this {torch.device(device).type} has no native bf16 matrix units "
               "(no AVX512-BF16 / AMX, or a CUDA device without bf16); using fp32")
         return "fp32"
     return precision
@@ -64,12 +68,11 @@ class DCILUpdater:
         mode: ``"joint"`` (one backward on the sum of ``loss_*``, one Adam step; default) or
             ``"sequential"`` (authors' order: critic/V step, Polyak, then actor/alpha step with the
             updated critic).
-        compile: wrap the update with ``torch.compile``. On the project's 2-core CPU it was
-            *slower* (0.85x of eager at the Dubins size, 0.90x at the Fetch size, after a 5-15 s
-            compile; ``benchmarks/bench_updates.py --compile``), so leave it off on CPU.
+        compile: wrap the update with ``torch.compile`` (measured in docs/measurements.md).
         cudagraphs: on CUDA, capture the update with ``tensordict.nn.CudaGraphModule`` (ignored on
             CPU). Adam is then built with ``capturable=True``.
-        updater: an existing target updater (default: a new ``SoftUpdate``).
+        precision: ``fp32``, ``bf16`` (the matrix products on bf16 copies of the weights, see
+            :class:`_ComputeCopies`) or ``auto`` (:func:`resolve_precision`).
 
     :meth:`step` returns a TensorDict of detached losses / diagnostics.
     """
@@ -86,8 +89,6 @@ class DCILUpdater:
         mode: str = "joint",
         compile: bool = False,
         cudagraphs: bool = False,
-        updater=None,
-        fused: bool | None = None,
         precision: str = "fp32",
     ):
         from torchrl.objectives import SoftUpdate
@@ -105,7 +106,7 @@ class DCILUpdater:
         self._autocast = (torch.autocast(device.type, dtype=torch.bfloat16)
                           if self.precision == "bf16" and self._copies is None else contextlib.nullcontext())
         self.tau = float(tau)
-        self.target_updater = updater if updater is not None else SoftUpdate(loss, tau=tau)
+        self.target_updater = SoftUpdate(loss, tau=tau)
         use_cg = bool(cudagraphs) and device.type == "cuda"
 
         def leaves(td):
@@ -116,12 +117,7 @@ class DCILUpdater:
         value_p = leaves(loss.value_network_params) if loss.has_value else []
         alpha_p = [loss.log_alpha] if loss.learn_alpha else []
         lr_value = lr_critic if lr_value is None else lr_value
-        kw = {"capturable": True} if use_cg else {}
-        if fused is None:
-            fused = True
-        kw["fused"] = fused
-        if not fused:
-            kw["foreach"] = True
+        kw = {"capturable": True, "fused": True} if use_cg else {"fused": True}
 
         def adam(groups):
             merged: dict[float, list] = {}  # one group per distinct lr (fewer fused kernel calls)
@@ -163,6 +159,7 @@ class DCILUpdater:
             if tgts:
                 self._polyak_lists = (tgts, srcs, float(tau))
 
+        self.n_steps, self._checks = 0, not use_cg and not compile
         fn = self._step_joint if mode == "joint" else self._step_sequential
         if compile:
             fn = torch.compile(fn)
@@ -193,10 +190,19 @@ class DCILUpdater:
         """The context of a forward + backward: bf16 copies of ``nets`` (or autocast, or nothing)."""
         return self._copies(*nets) if self._copies is not None else self._autocast
 
+    def _finite(self, losses: TensorDictBase, total: torch.Tensor) -> None:
+        """Raise :class:`NonFiniteLossError` (before any parameter moves) if a loss is NaN or inf.
+        Skipped under CUDA graphs (a check is a device sync there)."""
+        if self._checks and not bool(torch.isfinite(total)):
+            bad = next((k for k, v in losses.items() if k.startswith("loss_") and not bool(torch.isfinite(v))), "loss")
+            raise NonFiniteLossError(f"{bad} is {float(losses.get(bad, total))} at update {self.n_steps + 1}: the "
+                                     "update was not applied (a learning rate, alpha or target scale out of range?)")
+
     def _step_joint(self, batch: TensorDictBase) -> TensorDictBase:
         with self._compute("actor", "q", "v"):
             out = self.loss(batch)
             total = sum(v for k, v in out.items() if k.startswith("loss_"))
+            self._finite(out, total)
             total.backward()
         opt = self.optimizers[0]
         opt.step()
@@ -208,13 +214,17 @@ class DCILUpdater:
         crit_opt, act_opt = self.optimizers
         with self._compute("actor", "q", "v"):  # the actor samples a' (no gradient into it)
             c = self.loss.critic_loss(batch)
-            sum(v for k, v in c.items() if k.startswith("loss_")).backward()
+            total = sum(v for k, v in c.items() if k.startswith("loss_"))
+            self._finite(c, total)
+            total.backward()
         crit_opt.step()
         crit_opt.zero_grad(set_to_none=True)
         self._polyak()
         with self._compute("actor", "q"):  # copies of the updated critic
             a = self.loss.actor_loss(batch)
-            sum(v for k, v in a.items() if k.startswith("loss_")).backward()
+            total = sum(v for k, v in a.items() if k.startswith("loss_"))
+            self._finite(a, total)
+            total.backward()
         act_opt.step()
         act_opt.zero_grad(set_to_none=True)
         c.update(a)
@@ -222,7 +232,9 @@ class DCILUpdater:
 
     def step(self, batch: TensorDictBase) -> TensorDictBase:
         """One update on ``batch``; returns the detached losses and diagnostics."""
-        return self._fn(batch)
+        out = self._fn(batch)
+        self.n_steps += 1
+        return out
 
     __call__ = step
 
@@ -249,10 +261,10 @@ class _ComputeCopies:
         """Copies of the actor, twin-Q and V cores of ``loss``; None if one of them is not srdcil's."""
         from srdcil.networks import GoalConditionedMLP
 
-        actor = loss.__dict__.get("_actor_core")
-        cores = {"actor": getattr(actor, "trunk", None), "q": loss.__dict__.get("_q_core")}
+        found = loss.core_networks
+        cores = {"actor": getattr(found.get("actor"), "trunk", None), "q": found.get("q")}
         if loss.has_value:
-            cores["v"] = loss.__dict__.get("_v_core")
+            cores["v"] = found.get("v")
         if not all(isinstance(c, GoalConditionedMLP) for c in cores.values()):
             return None
         return cls(cores, dtype)

@@ -64,7 +64,6 @@ BAD_CONFIG = [
     ("logger.mode=sometimes", "logger.mode"),
     ("device=tpu", "device"),
     ("reset_scheme=sometimes", "reset_scheme"),
-    ("variant=vc", "method"),  # the variant is chosen with method=; a clash is named
     ("num_threads=0", "num_threads"),
     ("stop_after_success=-5", "stop_after_success"),
     ("cudagraphs=true", "cudagraphs"),
@@ -175,7 +174,7 @@ def test_bad_checkpoints_name_the_path_and_what_differs(tmp_path, wiggle_demo, s
         ([f"resume={truncated}"], "truncated.pt"),
         ([f"resume={garbage}"], "garbage.pt"),
         ([f"resume={other}"], "not an srdcil checkpoint"),
-        ([f"resume={good}", "method=vanilla"], "method='db_ags'"),
+        ([f"resume={good}", "method=vanilla"], "method: 'db_ags' -> 'vanilla'"),
         ([f"resume={good}", "network.hidden=[32,32]"], "network.hidden"),
         ([f"resume={good}", "env.goal_eps=0.5"], "other goals"),
     ]

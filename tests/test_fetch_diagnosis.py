@@ -4,7 +4,8 @@ import torch
 
 from _helpers import config
 from srdcil.builders import make_env
-from srdcil.envs.fetch.diagnosis import DemoReplay, goal_table, grasp_probe, main
+from srdcil.analysis.fetch_diagnosis import main
+from srdcil.envs.fetch.diagnosis import DemoReplay, goal_table, grasp_probe
 from srdcil.tasks import make_task
 
 
@@ -90,7 +91,7 @@ def test_scripted_controller_grasps_without_and_with_action_noise():
 
 
 def test_demo_start_probe_starts_at_the_demonstrated_state_of_a_goal(task):
-    from srdcil.envs.fetch.diagnosis import demo_start_probe
+    from srdcil.analysis.fetch_diagnosis import demo_start_probe
 
     t3 = int(task.goals.demo_indices[2])  # goal 3 starts where the demo reached goal 2 (step 45)
     s = demo_start_probe(task, DemoReplay(task.demo.actions[t3:]), 3, max_steps=60)["summary"]

@@ -148,13 +148,18 @@ def test_render_strip_of_demo_actions(tmp_path):
     assert img.shape[1] > 2.5 * img.shape[0]  # three frames side by side (step 99 is past the end)
 
 
-def test_explicit_mujoco_gl_is_kept():
+def test_import_sets_no_gl_and_an_explicit_mujoco_gl_is_kept():
     import os
     import subprocess
     import sys
 
-    code = "import os, srdcil; print(os.environ['MUJOCO_GL'])"
-    out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "MUJOCO_GL": "glfw"},
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM", "DISPLAY")}
+    code = ("import os, sys, srdcil.transforms, srdcil.training; "
+            "print(os.environ.get('MUJOCO_GL'), os.environ.get('PYOPENGL_PLATFORM'), 'dm_control' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["None", "None", "False"]  # importing srdcil sets nothing, imports no dm_control
+    code = "from srdcil.rendering import headless_gl; print(headless_gl())"
+    out = subprocess.run([sys.executable, "-c", code], env={**env, "MUJOCO_GL": "glfw"},
                          capture_output=True, text=True, check=True).stdout.strip()
     assert out == "glfw"
 

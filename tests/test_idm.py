@@ -58,11 +58,12 @@ def test_inverse_model_learns_the_maze_steering_from_random_transitions():
 
 
 def _inference(cfg):
-    from srdcil.builders import get_variant, make_demo_action_inference, make_replay
+    from srdcil.builders import make_demo_action_inference, make_replay
+    from srdcil.methods import get_method
     from srdcil.tasks import make_task
 
     task = make_task(cfg.env)
-    return task, make_replay(task, cfg, get_variant(cfg.variant), "cpu"), make_demo_action_inference(task, cfg, "cpu")
+    return task, make_replay(task, cfg, get_method(cfg.method), "cpu"), make_demo_action_inference(task, cfg, "cpu")
 
 
 def _fill(replay, task, n=400):

@@ -309,6 +309,25 @@ def test_set_keys_and_in_keys():
         loss.set_keys(not_a_key="x")
 
 
+def test_every_declared_key_is_read_and_the_batch_needs_nothing_else():
+    """A batch holding exactly ``in_keys`` is enough; each declared key of a VC loss is among them."""
+    loss = _small_loss(with_value=True)
+    td = _random_batch()
+    out = loss(td.select(*loss.in_keys))
+    assert torch.isfinite(out["loss_value_cloning"])
+    declared = set(loss._AcceptedKeys.__dataclass_fields__) - {"state_action_value", "state_value"}
+    read = {k if isinstance(k, str) else k[-1] for k in loss.in_keys}
+    assert declared <= read  # (the two module-output names are read from the generic Q / V modules' outputs)
+
+
+def test_select_out_keys_narrows_the_output():
+    loss = _small_loss()
+    assert loss.out_keys == ["loss_qvalue", "loss_actor", "alpha", "entropy", "q_mean", "target_mean"]
+    loss.select_out_keys("loss_qvalue", "loss_actor")
+    out = loss(_random_batch())
+    assert set(out.keys()) == {"loss_qvalue", "loss_actor"}
+
+
 def test_normalisation_and_dtype_move_reach_the_loss():
     from srdcil.networks import set_normalization
 
@@ -361,26 +380,28 @@ def test_value_loss_is_one_mean_over_the_mixed_batch_by_hand():
     torch.testing.assert_close(out["loss_value"] + out["loss_value_cloning"], all_sq.mean())
 
 
-def test_bf16_precision_falls_back_where_not_native(monkeypatch, capsys):
+def test_bf16_precision_falls_back_where_not_native(monkeypatch, caplog):
     import srdcil.updater as upd
 
+    caplog.set_level("INFO", logger="srdcil")
     monkeypatch.setattr(upd, "bf16_supported", lambda device="cpu": False)
     u = DCILUpdater(_small_loss(), precision="bf16")
-    assert u.precision == "fp32" and "using fp32" in capsys.readouterr().out
+    assert u.precision == "fp32" and "using fp32" in caplog.text
     with pytest.raises(ValueError, match="precision"):
         DCILUpdater(_small_loss(), precision="fp16")
 
 
-def test_precision_auto_is_bf16_only_on_a_cpu_with_native_bf16(monkeypatch, capsys):
+def test_precision_auto_is_bf16_only_on_a_cpu_with_native_bf16(monkeypatch, caplog):
     import srdcil.updater as upd
 
+    caplog.set_level("INFO", logger="srdcil")
     monkeypatch.setattr(upd, "bf16_supported", lambda device="cpu": True)
     assert DCILUpdater(_small_loss(), precision="auto").precision == "bf16"
-    assert "precision=auto: bf16" in capsys.readouterr().out
+    assert "precision=auto: bf16" in caplog.text
     assert upd.resolve_precision("auto", "cuda") == "fp32"  # not measured on a GPU: fp32 there
     monkeypatch.setattr(upd, "bf16_supported", lambda device="cpu": False)
     assert DCILUpdater(_small_loss(), precision="auto").precision == "fp32"
-    assert "no native bf16" in capsys.readouterr().out
+    assert "no native bf16" in caplog.text
 
 
 def test_precision_defaults_auto_on_the_maze_fp32_elsewhere_and_in_experiments_and_tests():

@@ -1,4 +1,5 @@
-"""Tests of srdcil.plots: the figures' numbers against hand calls of the networks, and the CLI.
+"""Tests of srdcil.analysis.plots (``python -m srdcil.plots``): the figures' numbers against hand calls of the
+networks, and the CLI.
 
 The checkpoints are untrained agents (small networks) whose weights are perturbed at random, live
 and target critics differently, so that the values vary over the maze and a figure that read the
@@ -16,14 +17,16 @@ import numpy as np
 import pytest
 import torch
 
-from srdcil import plots
+from srdcil.analysis import plots, runs
 from srdcil.goals import demo_transitions, demo_value_states
 from srdcil.tasks import make_task
 from omegaconf import OmegaConf
 
 from srdcil import checkpoint as ckpt_io
 from _helpers import config  # noqa: E402
-from srdcil.builders import get_variant, goal_transform, make_agent, make_env, make_loss_and_updater
+from srdcil.builders import make_agent, make_env, make_loss_and_updater
+from srdcil.methods import get_method
+from srdcil.transforms import find_goal_transform
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG_DIR = ROOT / "recipes" / "config"
@@ -44,7 +47,7 @@ def _perturb(params, gen: torch.Generator, scale: float) -> None:
 def _make_checkpoint(path: Path, config: str, variant: str, seed: int, extra=()) -> Path:
     cfg = _config(config, [f"method={variant}", "network.hidden=[32,32]", *extra])
     task = make_task(cfg.env)
-    v = get_variant(variant)
+    v = get_method(variant)
     actor, qvalue, value = make_agent(task, cfg, v, "cpu")
     loss, updater = make_loss_and_updater(cfg, actor, qvalue, value)
     gen = torch.Generator().manual_seed(seed)
@@ -53,11 +56,11 @@ def _make_checkpoint(path: Path, config: str, variant: str, seed: int, extra=())
     _perturb(actor.state_dict(), gen, 0.3)
     env = make_env(task, 1, "cpu", ags=v.ags, ags_k=int(cfg.ags.k),
                    critic=loss.target_q_value if v.ags else None)
-    thr = goal_transform(env).ags_thresholds
+    thr = find_goal_transform(env).ags_thresholds
     thr.copy_(torch.linspace(0.0, 1.0, thr.numel()))
     thr[-1] = float("nan")
     ckpt_io.save(path, {"frames": 1234, "actor": actor.state_dict(), "loss": loss.state_dict(),
-                        "updater": updater.state_dict(), "ags_thresholds": thr.clone(),
+                        "updater": updater.state_dict(), "transforms": env.transform.state_dict(),
                         "config": OmegaConf.to_container(cfg, resolve=True), "best": {"eval/goals_reached": 0}})
     return path
 
@@ -92,7 +95,7 @@ def test_load_agent_restores_the_checkpoint(ckpts, agents):
     a = agents["db_ags"]
     ckpt = torch.load(ckpts["db_ags"], map_location="cpu", weights_only=False)
     assert a.frames == 1234 and a.label == "db_ags" and a.n_goals == len(a.task.goals)
-    torch.testing.assert_close(a.thresholds, ckpt["ags_thresholds"], equal_nan=True)
+    torch.testing.assert_close(a.thresholds, ckpt_io.ags_thresholds(ckpt), equal_nan=True)
     for k, v in a.loss.state_dict().items():
         torch.testing.assert_close(v, ckpt["loss"][k], msg=k)
     for k, v in a.actor.state_dict().items():
@@ -134,6 +137,8 @@ def test_value_grid_is_target_q_of_the_deterministic_action_maximised_over_headi
         # it is the target critic: the live critic gives other numbers here
         q_live = a.loss._q_all(obs, goal, idx, _det_action(a, obs, goal, idx), "live").amin(0).reshape(-1)
         assert not torch.allclose(q_live, q, atol=1e-4)
+        np.testing.assert_allclose(plots.state_value(a, obs, goal, idx, which="live").numpy(), q_live.numpy(),
+                                   rtol=1e-5, atol=1e-6)  # --live reads the live twin Q
     assert grid.values.std() > 1e-3  # the perturbed critic is not flat over the maze
     # another goal index gives another map (the index and the goal are really fed in)
     other = plots.value_grid(a, GOAL + 1, n=9, n_headings=5, theta_range=(-1.0, 4.0))
@@ -165,7 +170,7 @@ def test_ags_region_is_value_above_threshold(agents):
     try:
         grid, th, mask = plots.ags_region(a, GOAL, n=20, n_headings=6)
     finally:
-        a.thresholds[GOAL] = torch.load(a.path, map_location="cpu", weights_only=False)["ags_thresholds"][GOAL]
+        a.thresholds[GOAL] = ckpt_io.ags_thresholds(torch.load(a.path, map_location="cpu", weights_only=False))[GOAL]
     assert th == theta
     np.testing.assert_array_equal(mask, grid.values >= theta)
     assert 0 < mask.sum() < mask.size
@@ -274,11 +279,11 @@ def test_run_curve_reads_metrics_and_draws_one_panel_per_logged_key(tmp_path):
             {"env_steps": 2000, "eval/goals_reached": 1, "eval/object_lift_m": 0.0},
             {"env_steps": 4000, "eval/goals_reached": 4, "eval/object_lift_m": 0.12}]
     (run / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
-    c = plots.read_curves(run, plots.RUN_CURVE_KEYS)
+    c = runs.read_curves(run, plots.RUN_CURVE_KEYS)
     assert c == {"eval/goals_reached": ([2000, 4000], [1.0, 4.0]), "eval/object_lift_m": ([2000, 4000], [0.0, 0.12])}
     out = plots.main(["run-curve", str(run), "--out", str(tmp_path / "curve.png")])
     assert _is_png(out)
     with pytest.raises(ValueError, match="none of"):
         plots.plot_run_curves([run], tmp_path / "x.png", keys=["eval/nothing"])
     with pytest.raises(FileNotFoundError, match="metrics.jsonl"):
-        plots.read_curves(tmp_path, ["eval/goals_reached"])
+        runs.read_curves(tmp_path, ["eval/goals_reached"])

@@ -1,4 +1,4 @@
-"""srdcil.report on synthetic run directories (no training, no torch needed)."""
+"""srdcil.analysis (runs, stats, report) on synthetic run directories (no training, no torch needed)."""
 import csv
 import json
 import math
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
-from srdcil import report
+from srdcil.analysis import report, runs, stats
 
 N = 5  # goals in the synthetic task
 
@@ -110,42 +110,42 @@ def test_warning_on_result_json_disagreement(written):
 
 
 def test_n_goals_fallbacks(results):
-    assert report.read_run(results / "vanilla_s0", default_n_goals=17)["n_goals"] == 17  # old format: CLI default
-    r = report.read_run(results / "vanilla_s0", default_n_goals=17)
+    assert runs.read_run(results / "vanilla_s0", default_n_goals=17)["n_goals"] == 17  # old format: CLI default
+    r = runs.read_run(results / "vanilla_s0", default_n_goals=17)
     assert r["first_strict_success_step"] is None  # 5 goals reached but 17 needed for strict success
-    assert report.read_run(results / "db_ags_s0", default_n_goals=17)["n_goals"] == N  # from eval/n_goals
+    assert runs.read_run(results / "db_ags_s0", default_n_goals=17)["n_goals"] == N  # from eval/n_goals
 
 
 def test_locf():
-    got = report.locf_on_grid([1000, 3000], [1.0, 2.0], [0, 999, 1000, 2000, 3000, 9000])
+    got = stats.locf_on_grid([1000, 3000], [1.0, 2.0], [0, 999, 1000, 2000, 3000, 9000])
     np.testing.assert_array_equal(got, [np.nan, np.nan, 1.0, 1.0, 2.0, 2.0])
     # a run enters the mean only once it has an evaluation: at t=1500 only run a counts
     a = {"evals": [(1000, 1, 0.0, 0.0, 0.2), (2000, 5, 1.0, 1.0, 1.0)]}
     b = {"evals": [(2000, 2, 0.0, 0.0, 0.4), (3000, 3, 0.0, 0.0, 0.6)]}
-    mean, half, n = report.mean_band([a, b], [1500, 2500, 5000], "goals_norm")
+    mean, half, n = stats.mean_band([a, b], [1500, 2500, 5000], "goals_norm")
     np.testing.assert_allclose(mean, [0.2, 0.7, 0.8])
     np.testing.assert_allclose(half, [0.0, 0.15, 0.1])
     np.testing.assert_array_equal(n, [1, 2, 2])
 
 
 def test_locf_on_real_runs(results):
-    runs = [r for r in report.collect(results, N, verbose=False) if r["method"] == "db_ags"]
-    mean, _, n = report.mean_band(runs, [12000, 30000], "goals_norm")
+    db_ags = [r for r in runs.collect(results, N, verbose=False) if r["method"] == "db_ags"]
+    mean, _, n = stats.mean_band(db_ags, [12000, 30000], "goals_norm")
     # 12k: 4/5 (s0 at 10k), 3/5 (s1 at 10k), 3/5 (s2 at 10k); 30k: s0, s1 carried forward at 5/5, s2 3/5
     np.testing.assert_allclose(mean, [(0.8 + 0.6 + 0.6) / 3, (1 + 1 + 0.6) / 3])
     np.testing.assert_array_equal(n, [3, 3])
-    np.testing.assert_allclose(report.solved_fraction(runs, [9999, 10000, 20000]), [0, 1 / 3, 2 / 3])
-    assert report.score_at(runs[2], 25000) == S2_GOALS[5] / N
+    np.testing.assert_allclose(stats.solved_fraction(db_ags, [9999, 10000, 20000]), [0, 1 / 3, 2 / 3])
+    assert stats.score_at(db_ags[2], 25000) == S2_GOALS[5] / N
 
 
 def test_censored_median():
     inf = math.inf
-    assert report.censored_quantile([10_000, 20_000, inf], 0.5) == 20_000
-    assert report.censored_quantile([10_000, inf, inf], 0.5) is None
-    assert report.censored_quantile([10_000, 20_000, inf], 0.25) == 15_000
-    assert report.censored_quantile([10_000, 20_000, inf], 0.75) is None
-    assert report.censored_quantile([30_000, 40_000], 0.5) == 35_000
-    assert report.censored_quantile([30_000, inf], 0.5) is None  # exactly half solved: not determined
+    assert stats.censored_quantile([10_000, 20_000, inf], 0.5) == 20_000
+    assert stats.censored_quantile([10_000, inf, inf], 0.5) is None
+    assert stats.censored_quantile([10_000, 20_000, inf], 0.25) == 15_000
+    assert stats.censored_quantile([10_000, 20_000, inf], 0.75) is None
+    assert stats.censored_quantile([30_000, 40_000], 0.5) == 35_000
+    assert stats.censored_quantile([30_000, inf], 0.5) is None  # exactly half solved: not determined
 
 
 def test_summary(written):
@@ -176,8 +176,8 @@ def test_summary(written):
 
 
 def test_rliable_outputs(written):
-    if report.rliable_error() is not None:
-        pytest.skip(f"rliable not importable: {report.rliable_error()}")
+    if stats.rliable_error() is not None:
+        pytest.skip(f"rliable not importable: {stats.rliable_error()}")
     out, summary, _ = written
     assert (out / "iqm.png").stat().st_size > 0 and (out / "profiles.png").stat().st_size > 0
     e = summary["methods"]["db_ags"]["iqm"]["25000"]
@@ -188,8 +188,8 @@ def test_rliable_outputs(written):
     assert e10["iqm"] == pytest.approx(0.4)
     # seeded bootstrap: the same numbers again
     scores = {"db_ags": {25000: [1.0, 1.0, 0.4]}}
-    a, _ = report.rliable_estimates(scores, [25000], reps=100, seed=3, taus=[0, 0.5, 1])
-    b, _ = report.rliable_estimates(scores, [25000], reps=100, seed=3, taus=[0, 0.5, 1])
+    a, _ = stats.rliable_estimates(scores, [25000], reps=100, seed=3, taus=[0, 0.5, 1])
+    b, _ = stats.rliable_estimates(scores, [25000], reps=100, seed=3, taus=[0, 0.5, 1])
     assert a == b
 
 
@@ -206,7 +206,7 @@ def test_without_rliable(results, tmp_path, monkeypatch, capsys):
 
 
 def test_incomplete_run_is_not_carried_past_its_last_evaluation():
-    from srdcil.report import locf_on_grid, score_at
+    from srdcil.analysis.stats import locf_on_grid, score_at
 
     assert np.isnan(locf_on_grid([0, 1000], [0.2, 0.5], [500, 1000, 5000], until=1000)[2])
     run = {"status": "incomplete", "evals": [(0, 1, 0, 0, 0.1), (1000, 3, 0, 0, 0.3)]}
@@ -280,14 +280,14 @@ def test_wall_time_to_solve_is_read_at_the_first_success(tmp_path):
 
 
 def test_curves_smoothed_over_each_runs_last_evaluations():
-    np.testing.assert_allclose(report.trailing_mean([0, 1, 0, 1, 1], 2), [0, 0.5, 0.5, 0.5, 1])
-    np.testing.assert_allclose(report.trailing_mean([0, 3, 0], 5), [0, 1.5, 1])  # fewer at the start
-    np.testing.assert_allclose(report.trailing_mean([2, 4], 1), [2, 4])
+    np.testing.assert_allclose(stats.trailing_mean([0, 1, 0, 1, 1], 2), [0, 0.5, 0.5, 0.5, 1])
+    np.testing.assert_allclose(stats.trailing_mean([0, 3, 0], 5), [0, 1.5, 1])  # fewer at the start
+    np.testing.assert_allclose(stats.trailing_mean([2, 4], 1), [2, 4])
     run = {"status": "finished", "evals": [(s, 0, c, 0, c) for s, c in ((0, 0), (1000, 1), (2000, 0), (3000, 1))]}
     grid = [0, 1500, 2000, 3000, 4000]
-    np.testing.assert_allclose(report.run_curves([run], grid, "chain", smooth=1)[0], [0, 1, 0, 1, 1])
+    np.testing.assert_allclose(stats.run_curves([run], grid, "chain", smooth=1)[0], [0, 1, 0, 1, 1])
     # the mean of the last 2 evaluations at or before t, then carried forward
-    np.testing.assert_allclose(report.run_curves([run], grid, "chain", smooth=2)[0], [0, 0.5, 0.5, 0.5, 0.5])
+    np.testing.assert_allclose(stats.run_curves([run], grid, "chain", smooth=2)[0], [0, 0.5, 0.5, 0.5, 0.5])
 
 
 
@@ -349,3 +349,56 @@ def test_committed_runs_csv_agrees_with_its_metrics(runs_csv, tmp_path):
     for r in rows:
         r["run_dir"] = str((runs_csv.parent / r["run_dir"]).resolve())
     assert again == rows
+
+
+def test_a_torn_last_line_of_metrics_is_read_without_error(tmp_path, capsys):
+    """A live run caught half-way through writing its last line: the line is skipped without a warning, by
+    the one reader of metrics.jsonl and by what reads through it (read_run, read_curves); an unreadable line
+    that is not the last is skipped with a warning."""
+    good = [{"env_steps": 1000, "eval/goals_reached": 2, "eval/chain_success": 0.0},
+            {"env_steps": 2000, "eval/goals_reached": 3, "eval/chain_success": 0.0}]
+    run = tmp_path / "db_s0"
+    run.mkdir()
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in good) + '{"env_steps": 3000, "eval/go')
+    records, warnings = runs.read_metrics(run)
+    assert records == good and warnings == []
+    r = runs.read_run(run, default_n_goals=N)
+    assert r["warnings"] == [] and r["n_evals"] == 2 and r["last_env_steps"] == 2000 and r["status"] == "incomplete"
+    assert runs.read_curves(run, ["eval/goals_reached"]) == {"eval/goals_reached": ([1000, 2000], [2.0, 3.0])}
+    assert capsys.readouterr().out == ""
+    (run / "metrics.jsonl").write_text(json.dumps(good[0]) + "\n{not json\n" + json.dumps(good[1]) + "\n")
+    records, warnings = runs.read_metrics(run)
+    assert records == good and len(warnings) == 1 and "unreadable line 2" in warnings[0]
+
+
+def test_several_results_dirs_make_one_table(results, tmp_path):
+    """Runs of several results directories in one report; a run under two of them is read once; one
+    directory given as a list of one is the same report as the directory alone."""
+    other = tmp_path / "other"
+    _write_run(other / "vc_s0", [(0, 1, 0, 0), (5000, 5, 1, 1)], {"seed": 0, "method": "vc"},
+               {"first_chain_success_step": 5000, "best_goals_reached": 5, "env_steps": 5000})
+    kw = dict(budgets=(10_000, 25_000, 50_000), n_goals=N, grid_step=1000, reps=100, verbose=False)
+    s = report.write_report([results, other, results / "more"], out=tmp_path / "rep", **kw)
+    assert list(s["methods"]) == ["vanilla", "db_ags", "vc", "dcil_ii"]
+    assert s["methods"]["vc"]["n"] == 1 and s["methods"]["vanilla"]["n"] == 3  # more/vanilla_s2 once
+    assert s["results_dir"] == [str(results), str(other), str(results / "more")]
+    assert (tmp_path / "rep" / "summary.md").read_text().startswith(f"# Ablation summary: {results}, {other}, ")
+    report.write_report(results, out=tmp_path / "alone", **kw)
+    report.write_report([results], out=tmp_path / "list", **kw)
+    report.main([str(results), "--out", str(tmp_path / "cli"), "--n-goals", str(N), "--budgets", "10k,25k,50k",
+                 "--reps", "100"])
+    for f in ("runs.csv", "summary.md", "summary.json", "ablation.png"):
+        alone = (tmp_path / "alone" / f).read_bytes()
+        assert (tmp_path / "list" / f).read_bytes() == alone == (tmp_path / "cli" / f).read_bytes(), f
+
+
+def test_the_library_never_imports_the_analysis():
+    """srdcil.analysis sits above the library: importing the library's modules loads none of it."""
+    import subprocess
+    import sys
+
+    code = ("import sys, srdcil.transforms, srdcil.objectives, srdcil.training, srdcil.policy, srdcil.builders, "
+            "srdcil.envs.fetch.diagnosis; print(sorted(m for m in sys.modules if m.startswith('srdcil.analysis')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=Path(__file__).resolve().parents[1]).stdout
+    assert out.strip() == "[]"

@@ -16,7 +16,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from srdcil.training import VARIANTS, train
+from srdcil.methods import PAPER_VARIANTS
+from srdcil.training import train
 
 from _helpers import CONFIG_DIR, REDUCED, ROOT, config, reduced  # noqa: F401 (wiggle_demo: conftest)
 
@@ -24,11 +25,12 @@ from _helpers import CONFIG_DIR, REDUCED, ROOT, config, reduced  # noqa: F401 (w
 def _untrained_goals(cfg) -> int:
     """Goals the untrained deterministic policy reaches in the chained evaluation."""
     from srdcil.tasks import make_task
-    from srdcil.builders import get_variant, make_agent, make_env
+    from srdcil.builders import make_agent, make_env
+    from srdcil.methods import get_method
     from srdcil.evaluation import evaluate
 
     task = make_task(cfg.env)
-    actor, _, _ = make_agent(task, cfg, get_variant("vanilla"), "cpu")
+    actor, _, _ = make_agent(task, cfg, get_method("vanilla"), "cpu")
     env = make_env(task, 1, "cpu", ags=False, ags_k=2)
     m, _ = evaluate(task, env, actor)
     return m["eval/goals_reached"], len(task.goals)
@@ -41,7 +43,7 @@ def test_reduced_problem_is_not_solved_by_the_untrained_policy(wiggle_demo):
     assert reached == 0
 
 
-@pytest.mark.parametrize("variant", sorted(VARIANTS))
+@pytest.mark.parametrize("variant", sorted(PAPER_VARIANTS))
 def test_each_variant_learns_the_reduced_chain(variant, tmp_path, wiggle_demo):
     cfg = config("sr_dcil_dubins", reduced(wiggle_demo) + [f"method={variant}", "collector.total_frames=8000"])
     r = train(cfg, run_dir=tmp_path)
@@ -55,7 +57,7 @@ def test_each_variant_learns_the_reduced_chain(variant, tmp_path, wiggle_demo):
 
 def test_dcil_ii_baseline_learns_the_reduced_chain(tmp_path, wiggle_demo):
     cfg = config("dcil_ii_dubins", reduced(wiggle_demo) + ["collector.total_frames=8000"])
-    assert cfg.reset_scheme == "demo_states" and cfg.variant == "vanilla"
+    assert cfg.reset_scheme == "demo_states" and cfg.method == "dcil_ii"
     assert cfg.replay.relabel_fraction == 0.8  # the authors' DCIL-II future_p
     r = train(cfg, run_dir=tmp_path)
     assert r["first_chain_success_step"] is not None, f"DCIL-II: best {r['best_goals_reached']} goals"
@@ -82,7 +84,8 @@ def test_checkpoint_and_resume(tmp_path, wiggle_demo):
     train(cfg, run_dir=tmp_path / "a")
     ckpt = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
     assert ckpt["frames"] == 480
-    assert {"actor", "loss", "updater", "ags_thresholds", "config", "replay"} <= set(ckpt)
+    assert {"actor", "loss", "updater", "transforms", "config", "replay"} <= set(ckpt)
+    assert "ags_thresholds" not in ckpt  # once: in the goal transform's state (transforms)
     cfg2 = config("sr_dcil_dubins", reduced(wiggle_demo) + ["method=db_ags", "collector.total_frames=720",
                                                  "stop_on_chain_success=false",
                                                  f"resume={tmp_path / 'a' / 'checkpoint.pt'}"])
@@ -155,12 +158,14 @@ def test_method_group_and_ablation_experiment_configs():
     from srdcil.training import method_name
 
     cfg = config("sr_dcil_dubins", ["method=dcil_ii"])
-    assert (cfg.variant, cfg.reset_scheme, cfg.replay.relabel_fraction) == ("vanilla", "demo_states", 0.8)
+    from srdcil.methods import METHODS
+
+    assert (METHODS[cfg.method], cfg.reset_scheme, cfg.replay.relabel_fraction) == (METHODS["vanilla"], "demo_states", 0.8)
     assert method_name(cfg) == "dcil_ii"
     cfg = config("sr_dcil_dubins", ["method=db_ags_paper"])
-    assert cfg.variant == "db_ags" and cfg.ags.threshold_window is None and method_name(cfg) == "db_ags_paper"
+    assert METHODS[cfg.method] == METHODS["db_ags"] and cfg.ags.threshold_window is None and method_name(cfg) == "db_ags_paper"
     cfg = config("sr_dcil_dubins", ["method=vc"])
-    assert method_name(cfg) == "vc" and cfg.variant == "vc" and cfg.ags.threshold_window == 2000
+    assert method_name(cfg) == "vc" and cfg.ags.threshold_window == 2000
     assert method_name(config("dcil_ii_dubins", [])) == "dcil_ii"
     cfg = config("sr_dcil_dubins", ["experiment=dubins_ablation", "method=vc_ags"])
     assert cfg.collector.total_frames == 100_000 and cfg.stop_after_success == 20_000

@@ -243,7 +243,7 @@ class DemoResetTransform(Transform):
         tensordict_reset.set(k_goal, goal)
         tensordict_reset.set(k_budget, budget)
         if gt is not None and gt.onehot_key is not None:
-            tensordict_reset.set(gt.onehot_key, gt._onehot(idx))
+            tensordict_reset.set(gt.onehot_key, gt.onehot(idx))
         return tensordict_reset
 
     # ------------------------------------------------------------------ step

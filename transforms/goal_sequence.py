@@ -204,7 +204,14 @@ class GoalSequenceTransform(Transform):
         self.threshold_window = None if threshold_window is None else int(threshold_window)
         # θ learnt during the current window (rolled into ags_thresholds at the window's end)
         self.register_buffer("ags_thresholds_next", torch.full_like(thresholds, float("nan")))
-        self._window_steps = 0
+        self.window_steps = 0  # env steps of the current threshold window (in state_dict: get_extra_state)
+
+    def get_extra_state(self) -> dict:
+        """What ``state_dict`` holds beside the buffers: the threshold window's step count."""
+        return {"window_steps": int(self.window_steps)}
+
+    def set_extra_state(self, state: dict) -> None:
+        self.window_steps = int(state["window_steps"])
 
     #: the entries every instance writes; ``ags_q_hist`` (AGS threshold learning) and ``onehot`` are optional
     _STATE_NAMES = ("goal", "goal_idx", "goal_budget", "ags_armed", "success", "env_terminated")
@@ -306,7 +313,7 @@ class GoalSequenceTransform(Transform):
         real success in it), and start a new, empty window."""
         self.ags_thresholds.copy_(self.ags_thresholds_next)
         self.ags_thresholds_next.fill_(float("nan"))
-        self._window_steps = 0
+        self.window_steps = 0
 
     # ------------------------------------------------------------------ specs
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
@@ -347,7 +354,8 @@ class GoalSequenceTransform(Transform):
         return done_spec
 
     # ------------------------------------------------------------------ helpers
-    def _onehot(self, idx: torch.Tensor) -> torch.Tensor:
+    def onehot(self, idx: torch.Tensor) -> torch.Tensor:
+        """The one-hot ``[*B, N]`` float32 of goal indices ``[*B, 1]`` (the ``onehot_key`` entry)."""
         return torch.nn.functional.one_hot(idx.squeeze(-1), self.num_goals).to(torch.float32)
 
     # ------------------------------------------------------------------ reset
@@ -368,7 +376,7 @@ class GoalSequenceTransform(Transform):
         if self._learn:
             out[K["ags_q_hist"]] = torch.full((*bs, self.ags_k), float("nan"), dtype=torch.float32, device=dev)
         if self.onehot_key is not None:
-            out[self.onehot_key] = self._onehot(idx)
+            out[self.onehot_key] = self.onehot(idx)
         tensordict_reset.update(out)
         if "truncated" not in tensordict_reset.keys():
             tensordict_reset.set("truncated", false.clone())
@@ -441,8 +449,8 @@ class GoalSequenceTransform(Transform):
                         self._update_thresholds(idx, success, hist, q)
                     hist = torch.cat([hist[..., 1:], q], dim=-1)
                     if self.threshold_window is not None:
-                        self._window_steps += idx.numel()
-                        if self._window_steps >= self.threshold_window:
+                        self.window_steps += idx.numel()
+                        if self.window_steps >= self.threshold_window:
                             self.roll_thresholds()
 
         spent = (budget <= 0) & not_success
@@ -480,7 +488,7 @@ class GoalSequenceTransform(Transform):
         if hist is not None:
             out[K["ags_q_hist"]] = hist.masked_fill_(switch, float("nan"))  # new attempt: empty
         if self.onehot_key is not None:
-            out[self.onehot_key] = self._onehot(new_idx)
+            out[self.onehot_key] = self.onehot(new_idx)
         next_tensordict.update(out)
         return next_tensordict
 

@@ -42,6 +42,9 @@ class Task:
     # (rollout TensorDict [T], reset_state [K] or None) -> list of RGB frames (uint8 [H, W, 3]) of the
     # rollout, or None where they cannot be drawn here (srdcil.evaluate --video)
     video_frames: Callable | None = None
+    # Demonstration -> None, or one line saying what in it cannot be this env's (e.g. a start state outside
+    # the maze, achieved goals that are not the projection of the states); checked by check_demo
+    validate_demo: Callable | None = None
 
     @cached_property
     def specs(self) -> dict:
@@ -85,13 +88,27 @@ class Task:
         if len(self.goals) < 2:
             raise DemoMismatchError(f"{where}: the demonstration gives {len(self.goals)} goal(s) at "
                                     f"env.goal_eps; at least 2 are needed (lower env.goal_eps)")
+        if self.validate_demo is not None:
+            problem = self.validate_demo(d)
+            if problem:
+                raise DemoMismatchError(f"{where}: {problem}")
+        reach = float((self.goals.goals - d.achieved_goals[:1]).norm(dim=-1).max())
+        if self.goals.radius >= reach:
+            raise ConfigError(f"env.goal_radius={self.goals.radius:g}: expected below the largest distance from the "
+                              f"start to a goal ({reach:.3g}); with it every goal would be reached at the start")
 
 
 def check_options(env_cfg, allowed: dict) -> dict:
-    """``env.options`` with defaults filled in; an unknown option is a :class:`ConfigError`."""
+    """``env.options`` with defaults filled in; an unknown option, or one whose type is not its
+    default's (a bool given as a string or a number, a float for an int), is a :class:`ConfigError`."""
     opts = dict(env_cfg.options or {})
     unknown = sorted(set(opts) - set(allowed))
     if unknown:
         raise ConfigError(f"env.options.{unknown[0]}: unknown option for env {env_cfg.name!r} "
                           f"(known: {', '.join(sorted(allowed)) or 'none'})")
+    for k, v in opts.items():
+        want = type(allowed[k])
+        ok = isinstance(v, want) and (want is bool or not isinstance(v, bool)) or (want is float and type(v) is int)
+        if allowed[k] is not None and not ok:
+            raise ConfigError(f"env.options.{k}={v!r}: expected a {want.__name__} (like its default {allowed[k]!r})")
     return {**allowed, **opts}

@@ -50,7 +50,25 @@ def make_task(env_cfg, demo, goals) -> Task:
         return maze_frames(xy, demo.achieved_goals.cpu(), goals.goals.cpu(), goals.radius)
 
     return Task("dubins", demo, goals, make_base_env, env_cfg.max_steps_per_goal, eval_metrics, plot_rollout,
-                exact_resume=True, start_noise=start_noise, video_frames=video_frames)
+                exact_resume=True, start_noise=start_noise, video_frames=video_frames, validate_demo=validate_demo)
+
+
+def validate_demo(demo) -> str | None:
+    """A maze demonstration: every state inside the maze, achieved goals = the states' (x, y)."""
+    from .env import MAZE_SIZE
+
+    xy = demo.states[:, :2]
+    outside = ((xy < 0) | (xy > MAZE_SIZE)).any(-1)
+    if bool(outside.any()):
+        t = int(outside.nonzero()[0, 0])
+        return (f"field 'states' row {t} is at (x, y) = {xy[t].tolist()}, outside the maze "
+                f"[0, {MAZE_SIZE}] x [0, {MAZE_SIZE}]")
+    off = (demo.achieved_goals - xy).abs().max(-1).values > 1e-4
+    if bool(off.any()):
+        t = int(off.nonzero()[0, 0])
+        return (f"field 'achieved_goals' row {t} is {demo.achieved_goals[t].tolist()}, not the (x, y) of "
+                f"'states' row {t} {xy[t].tolist()}")
+    return None
 
 
 def maze_frames(xy: torch.Tensor, demo_xy: torch.Tensor, goals: torch.Tensor, radius: float,

@@ -306,11 +306,15 @@ _RENDER_OK: Optional[bool] = None
 
 
 def rendering_available() -> bool:
-    """True when ``mujoco.Renderer`` can create a GL context here (checked once, cached)."""
+    """True when ``mujoco.Renderer`` can create a GL context here (checked once, cached; the headless
+    backend is chosen then, :func:`srdcil.rendering.headless_gl`)."""
     global _RENDER_OK
     if _RENDER_OK is None:
         import warnings
 
+        from srdcil.rendering import headless_gl
+
+        headless_gl()
         try:
             with warnings.catch_warnings():  # glfw warns loudly without a DISPLAY; the answer is enough
                 warnings.simplefilter("ignore")

@@ -40,7 +40,7 @@ def make_task(env_cfg, demo, goals) -> Task:
         plot_fetch_rollout(rollout, demo, goals, path, obs_dim=obs_dim)
 
     return Task("fetch", demo, goals, make_base_env, env_cfg.max_steps_per_goal, eval_metrics, plot_rollout,
-                key_demo_steps=grasp_step(demo), start_noise=object_start_noise(obs_dim),
+                key_demo_steps=grasp_step(demo), start_noise=object_start_noise(obs_dim), validate_demo=validate_demo,
                 video_frames=lambda rollout, reset_state=None: rollout_frames(rollout, reset_state, obs_dim))
 
 
@@ -75,6 +75,19 @@ def rollout_frames(rollout: TensorDictBase, reset_state=None, obs_dim: int = 604
         frames.append(env.render(*size))
     env.close()
     return frames
+
+
+def validate_demo(demo: Demonstration) -> str | None:
+    """A Fetch demonstration: achieved goals = gripper xyz ++ object xyz of the observations (obs[84:87],
+    obs[105:108], the same in the 604-D and 268-D layouts)."""
+    obs = demo.observations
+    proj = torch.cat([obs[:, 84:87], obs[:, 105:108]], -1)
+    off = (demo.achieved_goals - proj).abs().max(-1).values > 1e-4
+    if bool(off.any()):
+        t = int(off.nonzero()[0, 0])
+        return (f"field 'achieved_goals' row {t} is {[round(v, 4) for v in demo.achieved_goals[t].tolist()]}, not "
+                f"the gripper and object positions of 'observations' row {t} {[round(v, 4) for v in proj[t].tolist()]}")
+    return None
 
 
 def grasp_step(demo: Demonstration) -> dict:
