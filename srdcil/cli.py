@@ -47,11 +47,16 @@ def command(main):
 
 def exit_on_interrupt() -> None:
     """Ctrl-C before a command's own handling is in place (e.g. during its imports) exits with 130 and
-    one line instead of a traceback. The training loop installs its own handler later (checkpoint, stop)."""
+    one line instead of a traceback. The training loop installs its own handler later (checkpoint, stop).
+
+    The handler leaves with ``os._exit``: nothing is written yet, and an exception raised from a signal
+    handler in the middle of an extension module's import (numpy's, under torch) can be swallowed by an
+    optional import and leave that module half-loaded, so the run would fail later with a traceback."""
+    import os
     import signal
 
     def handler(signum, frame):
         print("srdcil: interrupted", file=sys.stderr, flush=True)
-        sys.exit(130)
+        os._exit(130)
 
     signal.signal(signal.SIGINT, handler)

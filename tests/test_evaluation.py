@@ -78,3 +78,39 @@ def test_fetch_grasp_step_is_the_last_state_before_the_gripper_closes():
     t = grasp_step(demo)["grasp"]
     assert demo.actions[t, -1] > 0 and demo.actions[t + 1, -1] < 0
     assert (demo.actions[: t + 1, -1] > 0).all()
+
+
+def test_actor_average_is_the_exponential_moving_average_of_the_weights():
+    from srdcil.evaluation import ActorAverages
+    from srdcil.networks import make_actor
+
+    actor = make_actor(3, 2, 4, 1, (8,))
+    avg = ActorAverages(actor, [0.5, 0.1])
+    p = next(actor.parameters())
+    p0 = p.detach().clone()
+    avg.update()  # the first update takes the weights as they are
+    with torch.no_grad():
+        p.add_(1.0)
+    avg.update()
+    for tau in (0.5, 0.1):
+        q = next(avg.models[tau].module.parameters())
+        torch.testing.assert_close(q, p0 + tau * 1.0)  # avg += tau (actor - avg)
+    state = avg.state_dict()
+    other = ActorAverages(make_actor(3, 2, 4, 1, (8,)), [0.5, 0.1])
+    other.load_state_dict(state)
+    torch.testing.assert_close(next(other.models[0.5].module.parameters()), p0 + 0.5)
+
+
+def test_with_actor_ema_the_policy_file_holds_the_average(tmp_path, wiggle_demo):
+    from _helpers import config, reduced
+    from srdcil.training import train
+
+    cfg = config("sr_dcil_dubins", reduced(wiggle_demo) + ["method=db", "eval.actor_ema=0.01",
+                                                          "collector.total_frames=600", "stop_on_chain_success=false"])
+    train(cfg, run_dir=tmp_path)
+    ck = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    pol = torch.load(tmp_path / "policy_best.pt", weights_only=False)
+    avg = {k[len("module."):]: v for k, v in ck["actor_averages"][0.01].items() if k.startswith("module.")}
+    key = next(k for k in pol["actor"] if k.endswith("weight"))
+    assert not torch.equal(pol["actor"][key], ck["actor"][key])  # not the actor's own weights
+    assert pol["actor"].keys() == avg.keys()

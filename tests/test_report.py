@@ -310,6 +310,28 @@ def test_stability_after_the_first_success(tmp_path):
     assert "| 0.42, 0.77 (2) |" in (tmp_path / "rep" / "summary.md").read_text()
 
 
+def test_stability_compares_the_evaluators_of_one_run(tmp_path):
+    from srdcil.analysis import stability
+
+    # the actor solves at 2k then fails 2 of 3 later evaluations; its average solves at 3k and holds
+    evals = [(1000, 0, 0), (2000, 1, 0), (3000, 0, 1), (4000, 0, 1), (5000, 1, 1)]
+    d = tmp_path / "db_ags_s0"
+    d.mkdir()
+    with open(d / "metrics.jsonl", "w") as f:
+        for step, actor, ema in evals:
+            f.write(json.dumps({"env_steps": step, "eval/chain_success": actor, "eval/strict_chain_success": actor,
+                                "eval/goals_reached": 3 + 2 * actor, "eval_ema0.005/chain_success": ema,
+                                "eval_ema0.005/strict_chain_success": 0, "eval_ema0.005/goals_reached": 5}) + "\n")
+    s = stability.main([str(tmp_path), "--out", str(tmp_path / "out")])
+    assert list(s) == ["eval", "eval_ema0.005"]  # the actor first
+    actor, ema = s["eval"]["runs"]["db_ags_s0"], s["eval_ema0.005"]["runs"]["db_ags_s0"]
+    assert (actor["first_success"], actor["n_after"], actor["share"]) == (2000, 4, 0.5)
+    assert (ema["first_success"], ema["n_after"], ema["share"], ema["strict_share"]) == (3000, 3, 1.0, 0.0)
+    assert actor["last10_share"] == 0.4 and s["eval"]["solved"] == "1/1"
+    assert (tmp_path / "out" / "stability.png").stat().st_size > 0
+    assert json.loads((tmp_path / "out" / "stability.json").read_text())["eval"]["mean_share"] == 0.5
+
+
 COMMITTED = sorted((Path(__file__).resolve().parents[1] / "results").glob("*/runs.csv"))
 
 
