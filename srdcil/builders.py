@@ -32,7 +32,7 @@ def setup_runtime(cfg: DictConfig) -> torch.device:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device=cuda: torch.cuda.is_available() is False on this machine")
     if device.type == "cpu" and cfg.num_threads:
-        # On a small shared CPU, one thread is faster than two (see README "Measured").
+        # On a small shared CPU, one thread is faster than two (docs/measurements.md).
         torch.set_num_threads(int(cfg.num_threads))
     seed = int(cfg.seed)
     torch.manual_seed(seed)

@@ -9,6 +9,7 @@ PAGE = Path(__file__).resolve().parents[1] / "docs" / "reuse.md"
 
 
 def page_code() -> str:
+    # ```python blocks are run; ```py blocks (a trained policy file) are illustrations
     return "\n\n".join(re.findall(r"```python\n(.*?)```", PAGE.read_text(), flags=re.S))
 
 
