@@ -1,4 +1,4 @@
-"""``python -m srdcil.plots {value-maps,ags-contour,vc-diagnostic,chain,run-curve} ...``: checkpoint figures.
+"""``python -m srdcil.plots {value-maps,ags-contour,vc-diagnostic,chain,run-curve,value-probe} ...``: checkpoint figures.
 
 The entry point only; the code is :mod:`srdcil.analysis.plots` (``python -m srdcil.plots --help``).
 """

@@ -287,3 +287,24 @@ def test_run_curve_reads_metrics_and_draws_one_panel_per_logged_key(tmp_path):
         plots.plot_run_curves([run], tmp_path / "x.png", keys=["eval/nothing"])
     with pytest.raises(FileNotFoundError, match="metrics.jsonl"):
         runs.read_curves(tmp_path, ["eval/goals_reached"])
+
+
+def test_value_probe_reads_the_probe_over_training_and_marks_the_first_success(tmp_path):
+    run = tmp_path / "vc_s0"
+    run.mkdir()
+    rows = [{"env_steps": 0, "eval/goals_reached": 0, "eval/n_goals": 3, "probe/grasp/v_demo": 2.0,
+             "probe/grasp/v": 0.0, "probe/grasp/q_pi": 0.0, "probe/g1/v_demo": 1.0, "probe/g1/q_pi": 0.5},
+            {"env_steps": 2000, "train/q_mean": 0.3},  # not an evaluation line
+            {"env_steps": 4000, "eval/goals_reached": 3, "eval/n_goals": 3, "probe/grasp/v_demo": 2.0,
+             "probe/grasp/v": 1.9, "probe/grasp/q_pi": 0.1},
+            {"env_steps": 6000, "eval/goals_reached": 2, "eval/n_goals": 3, "probe/grasp/v_demo": 2.0,
+             "probe/grasp/v": 2.0, "probe/grasp/q_pi": 1.5}]
+    (run / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    s = plots.value_probe_series(run)
+    assert s["v"] == ([0, 4000, 6000], [0.0, 1.9, 2.0]) and s["q_pi"] == ([0, 4000, 6000], [0.0, 0.1, 1.5])
+    assert s["first_success"] == 4000 and s["n_goals"] == 3 and s["goals"] == ([0, 4000, 6000], [0.0, 3.0, 2.0])
+    g1 = plots.value_probe_series(run, "g1")  # a run without V (db): no "v" curve
+    assert "v" not in g1 and g1["q_pi"] == ([0], [0.5])
+    with pytest.raises(ValueError, match="probes this run logs: g1, grasp"):
+        plots.value_probe_series(run, "g7")
+    assert _is_png(plots.main(["value-probe", str(run), str(run), "--out", str(tmp_path / "probe.png")]))

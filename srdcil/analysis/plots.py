@@ -45,6 +45,15 @@ chained evaluation takes). ``--live`` switches Q̄ to the live (non-target) twin
     key (default ``eval/goals_reached``, plus ``eval/object_lift_m`` and ``eval/object_moved_m`` where
     a run logs them: did a Fetch policy grasp and lift the box?), one line per run.
 
+``value-probe`` (the paper's Fig. 5 over training; any run, any env)
+    From ``metrics.jsonl`` only (no checkpoint): for one demo state (default ``grasp``, Fetch's last demo
+    state before the grasp; ``g3`` the first demo state of goal 3), the values the training loop logs at
+    every evaluation (``probe/<name>/*``, :class:`srdcil.evaluation.ValueProbe`) against env steps:
+    V_demo(s), the learned V(s) (runs with a V network) and the on-policy Q(s, π(s)) of the live critic.
+    One panel per run, titled with the run's outcome; the goals its evaluation reached on a second axis and
+    its first chain success marked. The paper's failure mode of Value Cloning on Fetch shows as V on
+    V_demo while Q(s, π(s)) stays near 0.
+
 ``chain`` (text, any checkpoint; one without AGS thresholds shows no skips)
     How one checkpoint's chained evaluation left each goal: reached for real (R), skipped by AGS after
     a near miss (A) or never reached (.), with each goal's threshold θ_i. A run that reaches the final
@@ -56,6 +65,7 @@ CLI::
     python -m srdcil.plots chain CKPT [CKPT ...] [--json OUT.json]
 
     python -m srdcil.plots run-curve RUN_DIR [RUN_DIR ...] [--keys eval/goals_reached ...] --out curve.png
+    python -m srdcil.plots value-probe RUN_DIR [RUN_DIR ...] [--probe grasp] --out probe.png
     python -m srdcil.plots value-maps CKPT [CKPT ...] [--goal-index 3|stall] [--use-v] [--rollout] --out value_maps.png
     python -m srdcil.plots ags-contour CKPT --goal-index 3 --out ags.png
     python -m srdcil.plots vc-diagnostic CKPT --out vc_diag.png
@@ -101,6 +111,8 @@ __all__ = [
     "plot_vc_diagnostic",
     "RUN_CURVE_KEYS",
     "plot_run_curves",
+    "value_probe_series",
+    "plot_value_probe",
     "print_chain_outcomes",
     "main",
 ]
@@ -533,6 +545,65 @@ def plot_run_curves(run_dirs: Sequence[str | Path], out: str | Path, keys: Seque
     return out
 
 
+def value_probe_series(run_dir: str | Path, probe: str = "grasp") -> dict:
+    """The curves of :func:`plot_value_probe` for one run: ``{"v_demo" | "v" | "q_pi": (env steps, values)}``
+    for the entries the run logged, ``goals`` (env steps, goals reached) of its evaluations, ``n_goals`` and
+    ``first_success`` (the first evaluation that reached every goal's final one, or None)."""
+    names = ("v_demo", "v", "q_pi")
+    c = read_curves(run_dir, [*(f"probe/{probe}/{k}" for k in names), "eval/goals_reached", "eval/n_goals"])
+    out = {k: c[f"probe/{probe}/{k}"] for k in names if f"probe/{probe}/{k}" in c}
+    if not out:
+        raise ValueError(f"{run_dir}: no probe/{probe}/* in metrics.jsonl (probes this run logs: "
+                         f"{', '.join(_probe_names(run_dir)) or 'none'})")
+    steps, goals = c.get("eval/goals_reached", ([], []))
+    n = int(c["eval/n_goals"][1][-1]) if "eval/n_goals" in c else None
+    first = next((s for s, g in zip(steps, goals) if g >= n), None) if n else None
+    return {**out, "goals": (steps, goals), "n_goals": n, "first_success": first}
+
+
+def plot_value_probe(run_dirs: Sequence[str | Path], out: str | Path, probe: str = "grasp") -> Path:
+    """Fig. 5 over training: V_demo, V (runs with a V network) and Q(s, π(s)) of the demo state ``probe``
+    against env steps, one panel per run, from the runs' ``metrics.jsonl`` (``probe/<probe>/*``)."""
+    import matplotlib.pyplot as plt
+
+    series = [(Path(d), value_probe_series(d, probe)) for d in run_dirs]
+    fig, axes = plt.subplots(1, len(series), figsize=(5.2 * len(series), 3.8), squeeze=False)
+    styles = {"v_demo": ("V_demo(s) (return of the demo)", "black", "--"), "v": ("learned V(s)", "tab:blue", "-"),
+              "q_pi": ("Q(s, π(s))", "tab:orange", "-")}
+    for ax, (d, c) in zip(axes[0], series):
+        for k, (label, color, ls) in styles.items():
+            if k in c:
+                ax.plot(np.asarray(c[k][0]) / 1000, c[k][1], ls, color=color, lw=1.5, label=label)
+        ax.set_xlabel("env steps (thousands)")
+        ax.set_ylabel(f"value at the demo state '{probe}'")
+        ax.grid(alpha=0.3)
+        title = d.name
+        steps, goals = c["goals"]
+        if steps:
+            tw = ax.twinx()
+            tw.step(np.asarray(steps) / 1000, goals, where="post", color="0.6", lw=0.9, alpha=0.7)
+            tw.set_ylabel("goals reached (evaluation)", color="0.45", fontsize=8)
+            if c["n_goals"]:
+                tw.set_ylim(-0.3, c["n_goals"] + 0.3)
+                first = c["first_success"]
+                if first is not None:
+                    ax.axvline(first / 1000, color="tab:green", lw=1.0, ls=":", label="first chain success")
+                title += (f": {'solved at ' + _steps(first) if first is not None else 'not solved'}"
+                          f" (best {int(max(goals))}/{c['n_goals']} goals)")
+        ax.set_title(title, fontsize=9)
+        ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    return _save(fig, out)
+
+
+def _probe_names(run_dir) -> list[str]:
+    """The probe names (``probe/<name>/...``) in a run's metrics.jsonl."""
+    from srdcil.analysis.runs import read_metrics
+
+    rows, _ = read_metrics(run_dir)
+    return sorted({k.split("/")[1] for r in rows for k in r if k.startswith("probe/")})
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m srdcil.plots", description=__doc__.split("\n\n")[0])
     p.add_argument("--debug", action="store_true", help="tracebacks for user errors")
@@ -576,6 +647,13 @@ def _parser() -> argparse.ArgumentParser:
     rc.add_argument("runs", nargs="+", help="run directories (with a metrics.jsonl)")
     rc.add_argument("--keys", nargs="+", default=list(RUN_CURVE_KEYS), help="metrics to plot, one panel each")
     rc.add_argument("--out", default="run_curve.png", help="output PNG path")
+    vp = sub.add_parser("value-probe", help="Fig. 5 over training: V_demo, V and Q(s, π(s)) of one demo state vs "
+                                            "env steps, one panel per run (metrics.jsonl)")
+    vp.add_argument("runs", nargs="+", help="run directories (with a metrics.jsonl)")
+    vp.add_argument("--probe", default="grasp",
+                    help="the demo state: 'grasp' (Fetch's last demo state before the grasp) or g<i> (goal i's "
+                         "first demo state); default grasp")
+    vp.add_argument("--out", default="value_probe.png", help="output PNG path")
     return p
 
 
@@ -607,8 +685,9 @@ def main(argv: Sequence[str] | None = None) -> Path | dict:
     args = _parser().parse_args(argv)
     if args.cmd == "chain":
         return print_chain_outcomes(args.ckpts, args.json)
-    if args.cmd == "run-curve":
-        out = plot_run_curves(args.runs, args.out, args.keys)
+    if args.cmd in ("run-curve", "value-probe"):
+        out = (plot_run_curves(args.runs, args.out, args.keys) if args.cmd == "run-curve"
+               else plot_value_probe(args.runs, args.out, args.probe))
         print(f"[srdcil.plots] wrote {out}")
         return out
     which = "live" if args.live else "target"
