@@ -130,3 +130,32 @@ def test_a_demo_without_actions_trains_idm_db_and_is_refused_by_db(tmp_path, wig
     r = train(cfg, run_dir=tmp_path / "idm")
     assert r["first_chain_success_step"] is not None, (
         f"idm_db never reached the final goal of the reduced chain (best {r['best_goals_reached']} goals)")
+
+
+def test_idm_db_ags_trains_on_fetch_from_a_demo_without_actions(tmp_path):
+    """Fetch: the shipped demo with its actions dropped; the Demo-Buffer gets the inverse model's actions."""
+    import dataclasses
+    import json
+
+    from srdcil.demo import Demonstration
+    from srdcil.errors import DemoMismatchError
+    from srdcil.training import train
+    from srdcil.tasks import make_task
+    from _helpers import ROOT
+
+    d = Demonstration.load(ROOT / "srdcil" / "data" / "fetch_demo.npz")
+    dataclasses.replace(d, actions=None).save(tmp_path / "fetch_states.npz")  # observations, sim states kept
+    over = [f"env.demo={tmp_path / 'fetch_states.npz'}", "network.hidden=[32,32]", "idm.hidden=[32,32]",
+            "collector.total_frames=160", "collector.init_random_frames=40", "optim.batch_size=32",
+            "idm.batch_size=32", "idm.warmup_updates=10", "idm.relabel_interval=40", "eval.interval=80",
+            "eval.plot=false", "progress=false", "logger.backend=csv"]
+    with pytest.raises(DemoMismatchError, match="field 'actions' is missing"):
+        train(config("sr_dcil_fetch", over + ["method=db_ags"]), run_dir=tmp_path / "db_ags")
+    r = train(config("sr_dcil_fetch", over + ["method=idm_db_ags"]), run_dir=tmp_path / "idm")
+    assert r["env_steps"] == 160 and r["updates"] > 0
+    rows = [json.loads(x) for x in (tmp_path / "idm" / "metrics.jsonl").read_text().splitlines()]
+    labelled = [x for x in rows if "idm/labelled_at" in x]
+    assert labelled, "the inverse model never labelled the demo"
+    # without true actions there is no action error, only the replay share (which needs none)
+    assert all(0 <= x["idm/demo_replay_share"] <= 1 and "idm/demo_action_error" not in x for x in labelled)
+    assert make_task(config("sr_dcil_fetch", over).env).demo.actions is None
