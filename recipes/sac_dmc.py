@@ -14,7 +14,8 @@ Every ``--eval-interval`` env steps (and at the start and the end), ``--eval-epi
 (the policy's mode) are run from the same initial states each time (the eval env is re-seeded), and one line
 is appended to ``OUT/metrics.jsonl``: ``env_steps``, ``success_rate`` (episodes in which the suite's "ball at
 target" held at some step), ``mean_return`` (the suite's return), ``updates``, ``wall_s``. ``OUT/config.json``
-holds the arguments.
+holds the arguments, ``OUT/result.json`` (written at the end) the totals. ``python -m
+srdcil.analysis.task_success`` compares these runs with SR-DCIL's on the task's success.
 """
 from __future__ import annotations
 
@@ -178,6 +179,9 @@ def main(argv=None):
     collector.shutdown()
     if frames % args.eval_interval:
         log(last)
+    (out / "result.json").write_text(json.dumps({
+        "method": "sac", "seed": args.seed, "env_steps": frames, "updates": updates, "stop_reason": "budget",
+        "wall_s": round(time.perf_counter() - t0, 1), "single_start": args.single_start}, indent=1) + "\n")
     env.close()
     eval_env.close()
 

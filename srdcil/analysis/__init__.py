@@ -9,6 +9,8 @@
   (``python -m srdcil.report``);
 * :mod:`~srdcil.analysis.plots`: figures and probes of training checkpoints and run curves, and their
   CLI (``python -m srdcil.plots``);
+* :mod:`~srdcil.analysis.task_success`: the task's own success, SR-DCIL runs beside a goal-free baseline
+  (``python -m srdcil.analysis.task_success``);
 * :mod:`~srdcil.analysis.fetch_diagnosis`: why a Fetch run stalls (``python -m
   srdcil.analysis.fetch_diagnosis``).
 
