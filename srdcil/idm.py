@@ -13,10 +13,11 @@ demonstration's state pairs (s_t, s_{t+1}):
   starts with the first labels, exactly as ``db`` from there on (same 80/20 batches, same loss).
 
 The methods never read demonstration actions: the replay's demo and the model see states only.
-When the demonstration file has actions anyway, they are used for two diagnostics only (logged as
-``idm/*``): ``idm/demo_action_error`` (mean |a_hat - a_demo|) and ``idm/demo_replay_share`` (the share
-of demo transitions whose inferred action, replayed from the demo state in the env, lands within the
-goal radius of the demo's next achieved goal; it needs no true actions and is logged always).
+When the demonstration file has actions anyway, they are used for one diagnostic only,
+``idm/demo_action_error`` (mean |a_hat - a_demo|). Two more need no true actions and are logged always:
+``idm/demo_replay_share``, the share of demo transitions whose inferred action, replayed from the demo
+state in the env, lands within the goal radius of the demo's next achieved goal, and
+``idm/demo_replay_error``, how far from it it lands, in demo step lengths.
 """
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ __all__ = ["DemoActionInference"]
 class DemoActionInference:
     """See the module docstring. ``demo_obs`` ``[T+1, D]``: the demo's observations; ``n_rows``: the
     Demo-Buffer rows (transitions 0..n_rows-1); ``true_actions``: for the diagnostic only (or None);
-    ``replay_check(actions) -> share``: the replay diagnostic (or None)."""
+    ``replay_check(actions) -> {metric: value}``: the replay diagnostics (or None)."""
 
     def __init__(self, demo_obs: torch.Tensor, n_rows: int, action_dim: int, idm_cfg, demo_fraction: float,
                  device="cpu", true_actions: torch.Tensor | None = None, replay_check=None):
@@ -88,7 +89,7 @@ class DemoActionInference:
         if self.true_actions is not None:
             out["idm/demo_action_error"] = float((self.labels - self.true_actions).abs().mean())
         if self.replay_check is not None:
-            out["idm/demo_replay_share"] = float(self.replay_check(self.labels))
+            out.update(self.replay_check(self.labels))
         return out
 
     def state_dict(self) -> dict:
@@ -108,21 +109,28 @@ class DemoActionInference:
 
 
 def replay_share_check(task, device="cpu"):
-    """``check(actions) -> share``: each demo transition's inferred action, applied from the demo state
-    (its ``sim_states`` row where it has one, else its state) in a fresh one-env copy of the task's env:
-    the share of rows whose next achieved goal lies within the goal radius of the demo's."""
+    """``check(actions) -> {metric: value}``: each demo transition's inferred action, applied from the demo state
+    (its ``sim_states`` row where it has one, else its state) in a fresh one-env copy of the task's env.
+    ``idm/demo_replay_share``: the share of rows whose next achieved goal lies within the goal radius of the
+    demo's; ``idm/demo_replay_error``: the mean distance between the two next achieved goals over the demo's
+    mean step length (0: the demo's step reproduced; where one step moves less than the goal radius, as on the
+    maze, the share saturates at 1 and only this one tells good actions from poor ones)."""
     demo = task.demo
     full = demo.sim_states if demo.sim_states is not None else demo.states
     env = task.make_base_env(1, device)
     radius = float(task.goals.radius)
 
     @torch.no_grad()
-    def check(actions: torch.Tensor) -> float:
-        hits = 0
+    def check(actions: torch.Tensor) -> dict:
+        dist = []
         for t in range(actions.shape[0]):
             td = env.reset(TensorDict({"reset_state": full[t:t + 1].to(device)}, batch_size=[1]))
             nxt = env.step(td.set("action", actions[t:t + 1].to(device)))["next"]
-            hits += int((nxt["achieved_goal"][0].cpu() - demo.achieved_goals[t + 1]).norm() <= radius)
-        return hits / max(actions.shape[0], 1)
+            dist.append(float((nxt["achieved_goal"][0].cpu() - demo.achieved_goals[t + 1]).norm()))
+        n = max(len(dist), 1)
+        ag = demo.achieved_goals[: len(dist) + 1]
+        step = float((ag[1:] - ag[:-1]).norm(dim=-1).mean()) if dist else 1.0
+        return {"idm/demo_replay_share": sum(d <= radius for d in dist) / n,
+                "idm/demo_replay_error": sum(dist) / n / max(step, 1e-12)}
 
     return check

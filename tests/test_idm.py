@@ -159,3 +159,19 @@ def test_idm_db_ags_trains_on_fetch_from_a_demo_without_actions(tmp_path):
     # without true actions there is no action error, only the replay share (which needs none)
     assert all(0 <= x["idm/demo_replay_share"] <= 1 and "idm/demo_action_error" not in x for x in labelled)
     assert make_task(config("sr_dcil_fetch", over).env).demo.actions is None
+
+
+def test_replay_check_measures_how_far_inferred_actions_land_from_the_demo():
+    """The maze's shipped demo: its own actions replay it exactly (error 0); steering the other way lands
+    away from the demo's next state, though still within the goal radius (the share saturates there)."""
+    from srdcil.idm import replay_share_check
+    from srdcil.tasks import make_task
+
+    task = make_task(config("sr_dcil_dubins", []).env)
+    check = replay_share_check(task)
+    a = task.demo.actions
+    exact = check(a)
+    assert exact["idm/demo_replay_share"] == 1.0 and exact["idm/demo_replay_error"] < 1e-4
+    wrong = check(-a)
+    assert wrong["idm/demo_replay_error"] > 0.05
+    assert check(a[:10])["idm/demo_replay_error"] < 1e-4  # the first rows only
