@@ -14,7 +14,10 @@ Without V (``vanilla`` / ``db`` variants)::
 
 Both Q-nets see the whole batch (no SAC-v1 half split). The entropy term in the target is only used
 with ``entropy_backup=True`` (the authors have it off). ``clip`` is ``target_clip`` ((0, 5) by
-default, ``None`` for no clipping).
+default, ``None`` for no clipping). With ``goals_left_clip=N`` (beyond the paper, off by default) the
+bootstrap at index i' is also capped at N - i', the most reward left along the chain (one per goal)::
+
+    y = r + gamma (1 - terminated) min(clip(...), N - i')
 
 With V (``vc`` variants, SAC-v1)::
 
@@ -173,6 +176,8 @@ class DCILSACLoss(LossModule):
         vc_coef (float): extra factor on the demo rows of the V batch (``loss_value_cloning``);
             1 (default) is the paper's single MSE over all rows.
         value_cloning (bool): with a V network, regress V on ``demo_return`` at demo rows.
+        goals_left_clip (int): the number of goals N: cap the bootstrap at index i' to N - i' (rewards
+            are 1 per reached goal, so no return along the chain can exceed it). None (default) = the paper.
 
     Output (TensorDict, batch ``[]``): ``loss_qvalue``, ``loss_actor``, [``loss_alpha``],
     [``loss_value``, ``loss_value_cloning``], and detached ``alpha``, ``entropy``, ``q_mean``,
@@ -236,6 +241,7 @@ class DCILSACLoss(LossModule):
         entropy_backup: bool = False,
         vc_coef: float = 1.0,
         value_cloning: bool = True,
+        goals_left_clip: int | None = None,
     ):
         super().__init__()
         self._in_keys = self._out_keys = None
@@ -275,6 +281,9 @@ class DCILSACLoss(LossModule):
                 )
             target_clip = (lo, hi)
         self.target_clip = target_clip
+        if goals_left_clip is not None and int(goals_left_clip) < 1:
+            raise ValueError(f"DCILSACLoss: goals_left_clip must be the number of goals (>= 1), got {goals_left_clip}")
+        self.goals_left_clip = None if goals_left_clip is None else int(goals_left_clip)
         if alpha <= 0:
             raise ValueError(f"DCILSACLoss: alpha must be > 0, got {alpha}")
         log_alpha = torch.tensor(math.log(alpha))
@@ -508,6 +517,8 @@ class DCILSACLoss(LossModule):
             if self.entropy_backup:
                 boot = boot - (self.alpha if alpha is None else alpha) * logp2
         boot = self._clip(boot)
+        if self.goals_left_clip is not None:  # at index i at most N - i rewards of 1 are left
+            boot = torch.minimum(boot, (self.goals_left_clip - nidx).to(boot.dtype))
         return r + self.gamma * (~term.bool()).to(boot.dtype) * boot
 
     @torch.no_grad()

@@ -107,15 +107,22 @@ def make_agent(task: Task, cfg: DictConfig, method: Method, device):
     return actor.to(device), qvalue.to(device), (value.to(device) if value is not None else None)
 
 
-def make_loss_and_updater(cfg: DictConfig, actor, qvalue, value):
-    """:class:`DCILSACLoss` and its :class:`DCILUpdater` (Adam, Polyak, update order)."""
+def make_loss_and_updater(cfg: DictConfig, actor, qvalue, value, n_goals: int | None = None):
+    """:class:`DCILSACLoss` and its :class:`DCILUpdater` (Adam, Polyak, update order); ``n_goals`` (the
+    chain's length) is needed by ``optim.target_clip_goals_left``."""
     from srdcil.objectives import DCILSACLoss
     from srdcil.updater import DCILUpdater
 
     o = cfg.optim
     clip = tuple(o.target_clip) if o.target_clip is not None else None
+    goals_left = None
+    if o.get("target_clip_goals_left", False):
+        if n_goals is None:
+            raise ValueError("make_loss_and_updater: optim.target_clip_goals_left needs n_goals")
+        goals_left = int(n_goals)
     loss = DCILSACLoss(actor, qvalue, value, gamma=o.gamma, alpha=o.alpha, learn_alpha=o.learn_alpha,
-                       target_clip=clip, entropy_backup=o.entropy_backup, vc_coef=o.vc_coef)
+                       target_clip=clip, entropy_backup=o.entropy_backup, vc_coef=o.vc_coef,
+                       goals_left_clip=goals_left)
     lr_value = o.lr_critic if o.lr_value is None else o.lr_value
     updater = DCILUpdater(loss, lr_actor=o.lr_actor, lr_critic=o.lr_critic, lr_value=lr_value, tau=o.tau,
                           mode=o.update_mode, compile=bool(cfg.compile), cudagraphs=bool(cfg.cudagraphs),

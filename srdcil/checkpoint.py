@@ -189,7 +189,12 @@ def check_resume(ckpt: dict, cfg: DictConfig, goals: torch.Tensor, path) -> list
                               f"this run's demonstration gives ({tuple(goals.shape)[0]}): same env.demo and "
                               "env.goal_eps are needed")
     saved, now = _flat(ckpt["config"]), _flat(OmegaConf.to_container(cfg, resolve=True))
-    changed = sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
+    # an option added since the checkpoint was written counts as unchanged where this run keeps its default
+    from srdcil.config import TrainConfig
+
+    default = _flat(OmegaConf.to_container(OmegaConf.structured(TrainConfig)))
+    changed = sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k)
+                     and not (k not in saved and k in default and now.get(k) == default[k]))
     may = [k for k in changed if k.startswith(RESUME_MAY_CHANGE)]
     refused = [k for k in changed if k not in may]
     if refused and not cfg.resume_allow_changes:

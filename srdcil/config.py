@@ -62,6 +62,8 @@ class OptimConfig:
     alpha: float = 1e-3  # entropy temperature (fixed unless learn_alpha)
     learn_alpha: bool = False
     target_clip: Optional[List[float]] = field(default_factory=lambda: [0.0, 5.0])  # None: no clipping
+    # beyond the paper: also cap each bootstrap at the goals left (N - i'), the most reward left on the chain
+    target_clip_goals_left: bool = False
     entropy_backup: bool = False
     vc_coef: float = 1.0  # extra factor on the demo rows of the V batch (1 = the paper)
     update_mode: str = "sequential"  # authors' order: critic, Polyak, actor | joint: one backward

@@ -255,7 +255,7 @@ def load_checkpoint_agent(path) -> CheckpointAgent:
     task = make_task(cfg.env)
     has_value = any(k.startswith("value_network_params.") for k in ckpt["loss"])
     actor, qvalue, value = rebuild_networks(cfg, task, value=has_value)
-    loss, _ = make_loss_and_updater(cfg, actor, qvalue, value)
+    loss, _ = make_loss_and_updater(cfg, actor, qvalue, value, n_goals=len(task.goals))
     actor.load_state_dict(ckpt["actor"])
     loss.load_state_dict(ckpt["loss"])
     actor.eval()

@@ -317,7 +317,7 @@ def build_run(cfg: DictConfig, run_dir: Path) -> _Run:
     saved, resume = _load_resume(cfg, run_dir, task)
     # 2. agent and loss (before the env: AGS reads the target critic from inside the env)
     actor, qvalue, value = make_agent(task, cfg, method, device)
-    loss, updater = make_loss_and_updater(cfg, actor, qvalue, value)
+    loss, updater = make_loss_and_updater(cfg, actor, qvalue, value, n_goals=len(task.goals))
     critic = loss.target_q_value if method.ags else None
     # 3. training env: single reset state + goal sequence (+ AGS; DCIL-II: demo-state resets)
     live = ckpt_io.LiveState() if task.exact_resume else None

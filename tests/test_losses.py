@@ -65,6 +65,44 @@ def _three_rows():
     return td
 
 
+def test_goals_left_clip_caps_each_bootstrap_at_the_goals_left():
+    """Beyond the paper (optim.target_clip_goals_left): rewards are 1 per goal, so from index i' at most
+    N - i' is left; the cap is per row (its next index), on top of target_clip, Q and V alike."""
+    actor = make_actor(OBS, GOAL, N, ACT, hidden=(8,))
+    q = _linear_q(v0=[0.5, 1.0, 7.0], v1=[0.8, 0.6, 9.0], c0=1.0, c1=2.0)
+    td = _three_rows()
+    td["next", "goal_idx"][0] = 2  # row 0 now bootstraps on the last goal: min(1 + 7, 2 + 9) = 8 -> clip 5
+    paper = DCILSACLoss(actor, q, gamma=GAMMA, target_clip=(0.0, 5.0))
+    capped = DCILSACLoss(actor, q, gamma=GAMMA, target_clip=(0.0, 5.0), goals_left_clip=N)
+    torch.testing.assert_close(paper.compute_target(td), torch.tensor([[1 + GAMMA * 5.0], [1.0], [GAMMA * 5.0]]))
+    # row 0: 1 goal left at index 2 -> 1; row 1 terminated; row 2: 2 goals left at index 1 -> 2
+    torch.testing.assert_close(capped.compute_target(td), torch.tensor([[1 + GAMMA * 1.0], [1.0], [GAMMA * 2.0]]))
+    # with a V network the cap applies to V(s'); a bootstrap below its cap is untouched
+    v = _linear_v([0.0, 0.5, 0.2], c=0.1)
+    capped_v = DCILSACLoss(actor, q, v, gamma=GAMMA, target_clip=(0.0, 5.0), goals_left_clip=N)
+    # V(s') row 0: 0.1 * 1.0 + 0.2 = 0.3 (< 1: kept); row 2: 0.1 * 6.0 + 0.5 = 1.1 (< 2: kept)
+    torch.testing.assert_close(capped_v.compute_target(td), torch.tensor([[1 + GAMMA * 0.3], [1.0], [GAMMA * 1.1]]))
+    with pytest.raises(ValueError, match="goals_left_clip"):
+        DCILSACLoss(actor, q, goals_left_clip=0)
+
+
+def test_target_clip_goals_left_option_reaches_the_loss():
+    from srdcil.builders import make_agent, make_loss_and_updater
+    from srdcil.methods import get_method
+    from srdcil.tasks import make_task
+
+    from _helpers import config
+
+    for flag, expected in (("false", None), ("true", "n_goals")):
+        cfg = config("sr_dcil_dubins", ["network.hidden=[8]", f"optim.target_clip_goals_left={flag}"])
+        task = make_task(cfg.env)
+        actor, qvalue, value = make_agent(task, cfg, get_method(cfg.method), "cpu")
+        loss, _ = make_loss_and_updater(cfg, actor, qvalue, value, n_goals=len(task.goals))
+        assert loss.goals_left_clip == (None if expected is None else len(task.goals))
+    with pytest.raises(ValueError, match="needs n_goals"):
+        make_loss_and_updater(cfg, actor, qvalue, value)
+
+
 def _random_batch(B=16, demo_frac=0.25, seed=0):
     g = torch.Generator().manual_seed(seed)
     td = TensorDict(

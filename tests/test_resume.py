@@ -99,3 +99,22 @@ def test_signal_stops_cleanly_with_a_checkpoint_and_the_same_command_resumes(sig
     # metrics.jsonl logs the same all-legs wall time (the report's wall time to solve): it keeps growing
     walls = [json.loads(x)["time/wall_s"] for x in (out / "metrics.jsonl").read_text().splitlines()]
     assert walls == sorted(walls) and walls[-1] > ck["progress"]["wall_s"]
+
+
+def test_resume_accepts_a_checkpoint_older_than_an_option_kept_at_its_default():
+    """A checkpoint written before an option existed (a series pinned at an older commit) resumes when this
+    run keeps that option's default; setting it to something else is a change like any other, and refused."""
+    from omegaconf import OmegaConf
+
+    from srdcil.checkpoint import check_resume
+    from srdcil.errors import CheckpointError
+
+    cfg = config("sr_dcil_dubins", [])
+    old = OmegaConf.to_container(cfg, resolve=True)
+    del old["optim"]["target_clip_goals_left"]  # an option added after this checkpoint was written
+    goals = torch.zeros(3, 2)
+    ckpt = {"config": old, "goals": goals, "replay": {}}
+    assert check_resume(ckpt, cfg, goals, "ckpt.pt") == []
+    changed = config("sr_dcil_dubins", ["optim.target_clip_goals_left=true"])
+    with pytest.raises(CheckpointError, match="target_clip_goals_left: None -> True"):
+        check_resume(ckpt, changed, goals, "ckpt.pt")
