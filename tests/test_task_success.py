@@ -11,10 +11,10 @@ from srdcil.analysis import task_success as ts
 from srdcil.errors import UserError
 
 
-def _srdcil_run(root, method, seed, successes, step=5000, finished=True):
+def _srdcil_run(root, method, seed, successes, step=5000, finished=True, **config):
     d = root / f"{method}_s{seed}"
     d.mkdir(parents=True)
-    (d / "config.yaml").write_text(yaml.safe_dump({"method": method, "seed": seed}))
+    (d / "config.yaml").write_text(yaml.safe_dump({"method": method, "seed": seed, **config}))
     rows = [{"env_steps": 10, "train/q": 0.0}]  # not an evaluation
     rows += [{"env_steps": (i + 1) * step, "eval/goals_reached": 3, "eval/task_success": bool(v)}
              for i, v in enumerate(successes)]
@@ -73,3 +73,13 @@ def test_a_directory_without_such_runs_is_one_clear_error(tmp_path):
     with pytest.raises(SystemExit) as e:
         ts.main([str(tmp_path)])
     assert e.value.code == 2
+
+
+def test_an_option_beyond_the_paper_is_its_own_arm(tmp_path):
+    _srdcil_run(tmp_path / "a", "db_ags", 0, [0, 1])
+    _srdcil_run(tmp_path / "b", "db_ags", 0, [0, 0, 1], optim={"target_clip_goals_left": True})
+    _srdcil_run(tmp_path / "c", "db_ags", 1, [1], optim={"target_clip_goals_left": False})
+    by = ts.collect_task_runs([tmp_path / "a", tmp_path / "b", tmp_path / "c"])
+    assert sorted(by) == ["db_ags", "db_ags + goals-left cap"]
+    assert [r["seed"] for r in by["db_ags"]] == [0, 1]
+    assert ts.summarise_task_success(by)["db_ags + goals-left cap"]["median_steps_to_success"] == 15000

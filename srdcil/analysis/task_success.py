@@ -37,6 +37,14 @@ from srdcil.errors import UserError
 __all__ = ["read_task_run", "collect_task_runs", "summarise_task_success", "plot_task_success", "main"]
 
 LAST_K = 5  # evaluations averaged for a run's final success
+#: options beyond the paper that, when true in a run's config, label it as its own arm ("db_ags + goals-left cap")
+ARM_OPTIONS = {"optim.target_clip_goals_left": "goals-left cap"}
+
+
+def _get(cfg: dict, dotted: str):
+    for part in dotted.split("."):
+        cfg = cfg.get(part) if isinstance(cfg, dict) else None
+    return cfg
 
 
 def read_task_run(run_dir) -> dict | None:
@@ -51,6 +59,8 @@ def read_task_run(run_dir) -> dict | None:
     else:
         cfg = load_yaml(run_dir / "config.yaml") or load_yaml(run_dir / ".hydra" / "config.yaml")
         label = cfg.get("method")
+        if label is not None:  # an option beyond the paper turned on makes its own arm
+            label += "".join(f" + {name}" for key, name in ARM_OPTIONS.items() if _get(cfg, key))
         evals = [(int(r["env_steps"]), float(bool(r["eval/task_success"]))) for r in rows
                  if "eval/task_success" in r]
     if not evals or label is None:
