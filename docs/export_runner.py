@@ -24,7 +24,12 @@ def run_chain(folder, reset, step):
             q = critic(obs, g, idx, action) if ags else None
         obs, achieved, env_done = step(action)
         budget -= 1
-        success = bool((achieved - g).norm() <= info["goal_radius"])
+        final = info.get("final_goal") if i == n - 1 else None  # the last goal's own test, if any
+        diff = (achieved - g).reshape(-1)
+        if final is None:
+            success = bool(diff.norm() <= info["goal_radius"])
+        else:
+            success = bool((diff if final["dims"] is None else diff[final["dims"]]).norm() <= final["radius"])
         theta = ags["thresholds"][i] if ags else None
         if theta is not None and not success and i < n - 1 and float(q) >= theta:
             armed, budget = True, min(budget, ags["k"])  # AGS: a near miss, switch k steps later

@@ -53,7 +53,7 @@ def make_env(task: Task, n_envs: int, device, *, ags: bool, ags_k: int, critic=N
     gst = GoalSequenceTransform(
         task.goals.goals.to(device), task.goals.radius, task.max_steps_per_goal,
         ags=ags, ags_k=ags_k, critic=critic, learn_thresholds=learn_thresholds, thresholds=thresholds,
-        threshold_window=threshold_window,
+        threshold_window=threshold_window, final_goal=task.goals.final_goal,
     )
     return TransformedEnv(task.make_base_env(n_envs, device),
                           Compose(gst, *extra_transforms, InitTracker(), *final_transforms))
@@ -152,7 +152,8 @@ def make_replay(task: Task, cfg: DictConfig, method: Method, device):
     g = torch.Generator().manual_seed(int(cfg.seed))
     replay = MixedReplay(task.goals.goals, task.goals.radius, capacity=int(r.capacity),
                          batch_size=int(cfg.optim.batch_size), demo=demo_td, demo_fraction=demo_fraction,
-                         relabel_fraction=r.relabel_fraction, device=device, generator=g)
+                         relabel_fraction=r.relabel_fraction, device=device, generator=g,
+                         final_goal=task.goals.final_goal)
     # store only what the loss and the relabelling read (fewer entries: faster batches, smaller checkpoints)
     from torchrl.envs import SelectTransform
 

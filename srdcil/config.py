@@ -39,6 +39,9 @@ class EnvConfig:
     extract_max_steps: Optional[int] = None  # ... and at most (None: no bound)
     max_demo_steps: Optional[int] = None  # use only the first K demo states (None: all)
     goal_radius: float = MISSING  # success radius delta
+    # beyond the paper: the last goal's own success test, a radius on some goal coordinates (None: goal_radius)
+    final_goal_radius: Optional[float] = None
+    final_goal_dims: Optional[List[int]] = None  # the goal coordinates it looks at (None: all)
     max_steps_per_goal: int = MISSING  # per-goal budget T_max
     options: Dict[str, Any] = field(default_factory=dict)  # env-specific, checked by the env's task
 
@@ -276,6 +279,12 @@ def _check_env(c: DictConfig, method) -> None:
            f"<= collector.frames_per_batch ({c.collector.frames_per_batch}): each round steps every env at least once")
     _check(e.goal_eps > 0, "env.goal_eps", e.goal_eps, "> 0")
     _check(e.goal_radius > 0, "env.goal_radius", e.goal_radius, "> 0")
+    _check(e.final_goal_radius is None or e.final_goal_radius > 0, "env.final_goal_radius", e.final_goal_radius,
+           "> 0 or null")
+    dims = e.final_goal_dims
+    _check(dims is None or (e.final_goal_radius is not None and len(dims) >= 1 and min(dims) >= 0
+                            and len(set(dims)) == len(dims)), "env.final_goal_dims",
+           None if dims is None else list(dims), "distinct goal coordinates >= 0, with env.final_goal_radius set")
     _check(e.max_steps_per_goal >= 1, "env.max_steps_per_goal", e.max_steps_per_goal, ">= 1")
     _check(e.extract_min_steps >= 1, "env.extract_min_steps", e.extract_min_steps, ">= 1")
     _check(e.extract_max_steps is None or e.extract_max_steps >= e.extract_min_steps, "env.extract_max_steps",

@@ -68,6 +68,7 @@ def export_policy(policy, out: str | Path) -> dict:
                                      dynamic_shapes=({0: batch}, {0: batch}, {0: batch}, {0: batch}))
         _save(critic, out / "critic.pt2")
     thr = policy.thresholds
+    fg = task.goals.final_goal
     info = {
         "format": "srdcil-export", "version": EXPORT_VERSION, "env": task.name,
         "env_options": dict(policy.cfg.env.options or {}), "trained_env_steps": policy.env_steps,
@@ -75,7 +76,11 @@ def export_policy(policy, out: str | Path) -> dict:
         "max_steps_per_goal": int(task.max_steps_per_goal),
         "observation": {"entry": "observation", "dim": obs_dim},
         "goal": {"dim": goal_dim, "achieved_goal_entry": "achieved_goal",
-                 "success": "||achieved_goal - goals[i]|| <= goal_radius"},
+                 "success": "||achieved_goal - goals[i]|| <= goal_radius" + (
+                     "; at the last goal ||(achieved_goal - goals[i])[final_goal.dims]|| <= final_goal.radius"
+                     if fg is not None else "")},
+        "final_goal": None if fg is None else {"radius": float(fg.radius),
+                                               "dims": None if fg.dims is None else list(fg.dims)},
         "goal_idx": "int64 [B, 1]: index i of the goal pursued (0-based)",
         "action": {"dim": act_dim, "low": specs["action_low"].tolist(), "high": specs["action_high"].tolist()},
         "actor": "actor.pt2: (observation, goal, goal_idx) -> action",

@@ -20,7 +20,7 @@ import torch
 from tensordict import TensorDict
 
 from srdcil.demo import Demonstration
-from srdcil.rule import dcil_rule, goal_success
+from srdcil.rule import FinalGoalTest, dcil_rule, goal_success
 
 __all__ = [
     "GoalSequence",
@@ -30,6 +30,7 @@ __all__ = [
     "demo_returns",
     "dcil_rule",
     "goal_success",
+    "FinalGoalTest",
 ]
 
 
@@ -45,6 +46,7 @@ class GoalSequence:
     step_goal_index long  [T]     for each demo transition t -> t+1, the first goal i with
                                   ``demo_indices[i] >= t+1`` (the goal that step heads for)
     radius          float         success radius (Dubins 0.1, Fetch 0.075)
+    final_goal      FinalGoalTest | None  the last goal's own success test (None: ``radius``, the paper)
     """
 
     goals: torch.Tensor
@@ -53,6 +55,7 @@ class GoalSequence:
     start_states: torch.Tensor
     step_goal_index: torch.Tensor
     radius: float
+    final_goal: FinalGoalTest | None = None
 
     def __len__(self) -> int:
         return int(self.goals.shape[0])
@@ -65,6 +68,7 @@ class GoalSequence:
             start_states=self.start_states.to(device),
             step_goal_index=self.step_goal_index.to(device),
             radius=self.radius,
+            final_goal=self.final_goal,
         )
 
 
@@ -158,7 +162,7 @@ def _demo_chain(demo: Demonstration, goal_seq: GoalSequence, drop_after_last_goa
             batch_size=[],
             device=device,
         )
-        dcil_rule(td, goals, goal_seq.radius)
+        dcil_rule(td, goals, goal_seq.radius, final_goal=goal_seq.final_goal)
         rows.append(td)
         goal_idx = td.get(("next", "goal_idx"))
         if drop_after_last_goal and bool(td.get(("next", "terminated"))):

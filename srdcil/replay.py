@@ -68,7 +68,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import LazyTensorStorage, RandomSampler, ReplayBuffer
 
-from srdcil.rule import dcil_rule
+from srdcil.rule import FinalGoalTest, dcil_rule
 
 __all__ = ["MixedReplay", "ReplayKeys", "TRANSITION_KEYS", "VALUE_STATE_KEYS"]
 
@@ -161,6 +161,8 @@ class MixedReplay(ReplayBuffer):
         writer: a torchrl writer that fills dim 0 in order (default ``RoundRobinWriter``).
         transform: torchrl transform(s) applied to every sampled batch (and ``inv`` on ``extend``),
             as in any ``ReplayBuffer``.
+        final_goal: the last goal's own success test of the DCIL rule (:class:`srdcil.rule.FinalGoalTest`),
+            None = ``radius`` for every goal (the paper); the env's goal-sequence transform must use the same.
     """
 
     default_keys = ReplayKeys
@@ -182,6 +184,7 @@ class MixedReplay(ReplayBuffer):
         sampler=None,
         writer=None,
         transform=None,
+        final_goal: FinalGoalTest | None = None,
     ) -> None:
         if storage is None:
             if capacity is None or int(capacity) < 1:
@@ -209,6 +212,7 @@ class MixedReplay(ReplayBuffer):
         if self.goals.ndim != 2:
             raise ValueError(f"MixedReplay: goals must be [N, G], got shape {tuple(self.goals.shape)}")
         self.radius = float(radius)
+        self.final_goal = final_goal
         self.capacity = int(capacity) if capacity is not None else int(storage.max_size)
         self.default_batch_size = int(batch_size)
         self.demo_fraction = float(demo_fraction)
@@ -537,7 +541,7 @@ class MixedReplay(ReplayBuffer):
             rows, self.goals, self.radius,
             achieved_goal_key=_nxt(K.achieved_goal), env_terminated_key=_nxt(K.env_terminated),
             goal_key=K.goal, goal_idx_key=K.goal_idx, reward_key=_nxt(K.reward), next_goal_key=_nxt(K.goal),
-            next_goal_idx_key=_nxt(K.goal_idx), terminated_key=_nxt(K.terminated),
+            next_goal_idx_key=_nxt(K.goal_idx), terminated_key=_nxt(K.terminated), final_goal=self.final_goal,
             truncated_key=_nxt(K.truncated), done_key=_nxt(K.done),
         )
         return rows

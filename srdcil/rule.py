@@ -6,13 +6,43 @@ so learning targets never depend on what the control flow did during collection.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from tensordict import TensorDictBase
 
 
-def goal_success(achieved_goal: torch.Tensor, goal: torch.Tensor, radius: float) -> torch.Tensor:
-    """``||achieved_goal - goal||_2 <= radius`` over the last dim, kept as ``[..., 1]`` bool."""
-    return (achieved_goal - goal).norm(dim=-1, keepdim=True) <= radius
+@dataclass(frozen=True)
+class FinalGoalTest:
+    """The last goal's own success test (beyond the paper, where one radius serves every goal): at index
+    N - 1, success is ``||(achieved_goal - goal)[dims]||_2 <= radius`` (``dims`` None: every coordinate).
+    E.g. a task's own success on some coordinates of the goal space (dm_control's "ball at target")."""
+
+    radius: float
+    dims: tuple[int, ...] | None = None
+
+    def __post_init__(self):
+        if not self.radius > 0:
+            raise ValueError(f"FinalGoalTest: radius must be > 0, got {self.radius}")
+        if self.dims is not None:
+            dims = tuple(int(d) for d in self.dims)
+            if not dims or len(set(dims)) != len(dims) or min(dims) < 0:
+                raise ValueError(f"FinalGoalTest: dims must be distinct coordinates >= 0, got {self.dims}")
+            object.__setattr__(self, "dims", dims)
+
+
+def goal_success(achieved_goal: torch.Tensor, goal: torch.Tensor, radius: float, idx: torch.Tensor | None = None,
+                 n_goals: int | None = None, final: FinalGoalTest | None = None) -> torch.Tensor:
+    """``||achieved_goal - goal||_2 <= radius`` over the last dim, kept as ``[..., 1]`` bool; with ``final``,
+    rows at the last index (``idx >= n_goals - 1``) use the :class:`FinalGoalTest` instead."""
+    diff = achieved_goal - goal
+    ok = diff.norm(dim=-1, keepdim=True) <= radius
+    if final is None:
+        return ok
+    if idx is None or n_goals is None:
+        raise ValueError("goal_success: a final-goal test needs idx and n_goals")
+    part = diff if final.dims is None else diff[..., list(final.dims)]
+    return torch.where(idx >= n_goals - 1, part.norm(dim=-1, keepdim=True) <= final.radius, ok)
 
 
 def advance(idx: torch.Tensor, goal: torch.Tensor, switch: torch.Tensor, goals: torch.Tensor):
@@ -45,6 +75,7 @@ def dcil_rule(
     terminated_key=("next", "terminated"),
     truncated_key=("next", "truncated"),
     done_key=("next", "done"),
+    final_goal: FinalGoalTest | None = None,
 ) -> TensorDictBase:
     """Recompute ``("next", reward/goal/goal_idx/terminated/done)`` in place from the goal of ``td``.
 
@@ -53,11 +84,12 @@ def dcil_rule(
     relabelled. ``terminated`` is true for success on the last goal, or a true env termination.
     ``done`` = terminated | truncated (a timeout never cuts bootstrapping: only ``terminated`` does).
     Every entry is named by a ``*_key`` argument (defaults: the names of ``docs/architecture.md``).
+    ``final_goal``: the last goal's own success test (:class:`FinalGoalTest`), None = ``radius`` as every goal.
     """
     goal = td.get(goal_key)
     idx = td.get(goal_idx_key)
     n = goals.shape[0]
-    r = goal_success(td.get(achieved_goal_key), goal, radius)
+    r = goal_success(td.get(achieved_goal_key), goal, radius, idx, n, final_goal)
     next_idx, next_goal = advance(idx, goal, r, goals)
     terminated = terminal(r, idx, n, td.get(env_terminated_key, None))
     td.set(reward_key, r.to(torch.float32))

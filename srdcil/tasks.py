@@ -59,6 +59,17 @@ def make_task(env_cfg, demo: Demonstration | None = None, demo_path: str | None 
         max_steps=env_cfg.extract_max_steps,
         max_demo_steps=env_cfg.max_demo_steps,
     )
+    final_radius = env_cfg.get("final_goal_radius", None)
+    if final_radius is not None:  # beyond the paper: the last goal's own success test
+        from srdcil.rule import FinalGoalTest
+
+        dims = env_cfg.get("final_goal_dims", None)
+        if dims is not None and max(dims) >= goals.goals.shape[-1]:
+            from srdcil.errors import ConfigError
+
+            raise ConfigError(f"env.final_goal_dims={list(dims)!r}: expected coordinates of the "
+                              f"{goals.goals.shape[-1]}-D goal space (0 .. {goals.goals.shape[-1] - 1})")
+        goals.final_goal = FinalGoalTest(float(final_radius), None if dims is None else tuple(int(d) for d in dims))
     task = factory(env_cfg, demo, goals)
     task.demo_path = demo_path or "<demonstration>"
     return task

@@ -172,6 +172,28 @@ def test_goal_extraction_gives_the_chosen_chain(demo):
     env.close()
 
 
+
+def test_the_chains_last_goal_is_the_suites_success(demo):
+    """env.final_goal_*: reaching the last goal puts the ball within the suite's 1 cm of the target (by the
+    triangle inequality), and the demo's actions, replayed through the goal chain, reach it where the suite
+    says the ball is at the target."""
+    from srdcil.builders import make_env
+    from srdcil.tasks import make_task
+
+    task = make_task(config("sr_dcil_dmc", []).env)
+    final = task.goals.final_goal
+    assert final.dims == (2, 3)
+    target = demo.observations[-1, 40:42]  # the suite's target_pos (x, z); fixed by the single reset
+    assert final.radius + float((task.goals.goals[-1, 2:] - target).norm()) < core.SUITE_CLOSE
+    env = make_env(task, 1, "cpu", ags=False, ags_k=2)
+    rollout = env.rollout(demo.num_steps, policy=_ActionsFrom(demo.actions), break_when_any_done=True)
+    nxt = rollout[0]["next"]
+    assert int(nxt["goal_idx"][-1]) == len(task.goals) - 1 and bool(nxt["terminated"][-1])
+    assert not nxt["truncated"].any() and not nxt["terminated"][:-1].any()
+    assert bool(nxt["task_success"][-1])  # the chain ends where the suite's success holds
+    env.close()
+
+
 class _ActionsFrom:
     def __init__(self, actions):
         self.actions, self.t = actions, 0

@@ -101,6 +101,32 @@ def test_radius_is_inclusive_in_2d():
     assert out["next", "success"].item() and out["next", "goal_idx"].item() == 1
 
 
+def test_final_goal_test_judges_only_the_last_goal_on_its_own_coordinates():
+    """Beyond the paper (env.final_goal_radius / final_goal_dims): goals 0..N-2 keep ``radius`` on every
+    coordinate; the last is reached only within the final test's radius on its coordinates."""
+    from srdcil.rule import FinalGoalTest
+
+    goals = torch.tensor([[1.0, 0.0], [2.0, 0.8]])  # the last goal's coordinate 1 is ignored by its test
+    final = FinalGoalTest(0.05, dims=(0,))
+    # step 1 reaches goal 0 within radius 0.5 (0.3 off on coordinate 0): a success a 0.05-test would not give
+    data, _ = run(make_env(goals=goals, radius=0.5, dim=2, final_goal=final),
+                  torch.tensor([[0.7, 0.0], [1.0, 0.0], [0.2, 0.0], [0.08, 0.0]]))
+    assert flat(data["next", "success"]) == [True, False, False, True]
+    assert flat(data["next", "goal_idx"]) == [1, 1, 1, 1]
+    # at x = 1.7 and 1.9 the last goal is within 0.5 on coordinate 0 but not within 0.05; at 1.98 it is,
+    # though 0.8 away on coordinate 1 (the paper's test would refuse it): terminated there, and only there
+    assert flat(data["next", "terminated"]) == [False, False, False, True]
+    paper, _ = run(make_env(goals=goals, radius=0.5, dim=2),
+                   torch.tensor([[0.7, 0.0], [1.0, 0.0], [0.2, 0.0], [0.08, 0.0], [0.0, 0.7]]))
+    assert flat(paper["next", "terminated"]) == [False, False, False, False, True]  # within 0.5 on both
+    paper, _ = run(make_env(goals=goals, radius=0.5, dim=2), torch.tensor([[0.7, 0.0], [1.2, 0.7]]))
+    assert flat(paper["next", "terminated"]) == [False, True]  # the paper's test: within 0.5 on both
+    with pytest.raises(ValueError, match="outside the 2-D goal space"):
+        make_env(goals=goals, radius=0.5, dim=2, final_goal=FinalGoalTest(0.1, dims=(2,)))
+    with pytest.raises(ValueError, match="radius must be > 0"):
+        FinalGoalTest(0.0)
+
+
 def test_truncation_then_auto_reset_to_start():
     env = make_env(goals=GOALS_1D, t_max=3)
     data, roots = run(env, acts(1.0, 0.0, 0.0, 0.0, 0.5))

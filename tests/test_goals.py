@@ -153,3 +153,43 @@ def test_rows_after_the_last_goal_are_kept_by_default_and_can_be_dropped():
     assert short.shape[0] == 4 and bool(short["next", "terminated"][-1])
     assert torch.equal(short["demo_return"], td["demo_return"][:4])
     assert demo_value_states(d, g, gamma=0.9, drop_after_last_goal=True).shape[0] == 4
+
+
+def test_final_goal_test_in_the_dcil_rule_the_demo_chain_and_the_recipe_config():
+    """env.final_goal_radius / final_goal_dims (beyond the paper): the DCIL rule judges rows at the last index
+    (relabelled or not) by the final test, the demo chain is built with it, and the recipe's env and replay
+    get the same test; a coordinate outside the goal space is one clear error."""
+    from tensordict import TensorDict
+
+    from _helpers import config
+    from srdcil.builders import make_env, make_replay
+    from srdcil.errors import ConfigError
+    from srdcil.methods import get_method
+    from srdcil.rule import FinalGoalTest, dcil_rule
+    from srdcil.tasks import make_task
+
+    goals = torch.tensor([[1.0, 0.0], [2.0, 0.8]])
+    rows = TensorDict(goal=torch.tensor([[1.0, 0.0], [2.0, 0.8], [2.0, 0.8], [5.0, 5.0]]),
+                      goal_idx=torch.tensor([[0], [1], [1], [1]]), batch_size=[4])
+    rows["next"] = TensorDict(achieved_goal=torch.tensor([[1.3, 0.0], [1.98, 0.0], [1.7, 0.8], [5.01, 9.0]]),
+                              batch_size=[4])
+    dcil_rule(rows, goals, 0.5, final_goal=FinalGoalTest(0.05, dims=(0,)))
+    # row 0: goal 0 by the radius; row 1: last goal on coordinate 0 only; row 2: within 0.5 but not 0.05;
+    # row 3: a relabelled goal at the last index, judged by the same final test
+    assert rows["next", "reward"].reshape(-1).tolist() == [1.0, 1.0, 0.0, 1.0]
+    assert rows["next", "terminated"].reshape(-1).tolist() == [False, True, False, True]
+
+    cfg = config("sr_dcil_dubins", ["env.final_goal_radius=0.05", "env.final_goal_dims=[0]"])
+    task = make_task(cfg.env)
+    assert task.goals.final_goal == FinalGoalTest(0.05, (0,))
+    env = make_env(task, 1, "cpu", ags=False, ags_k=2)
+    assert env.transform[0].final_goal == task.goals.final_goal
+    replay = make_replay(task, cfg, get_method("db"), "cpu")
+    assert replay.final_goal == task.goals.final_goal
+    # the shipped demo still reaches its last goal under the final test (its last state is that goal)
+    demo = demo_transitions(task.demo, task.goals, 0.9)
+    assert bool(demo["next", "terminated"][-1]) and int(demo["goal_idx"][-1]) == len(task.goals) - 1
+    paper = make_task(config("sr_dcil_dubins", []).env)
+    assert paper.goals.final_goal is None
+    with pytest.raises(ConfigError, match="final_goal_dims"):
+        make_task(config("sr_dcil_dubins", ["env.final_goal_radius=0.05", "env.final_goal_dims=[2]"]).env)

@@ -52,7 +52,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from srdcil.rule import advance, goal_success, terminal
+from srdcil.rule import FinalGoalTest, advance, goal_success, terminal
 
 __all__ = ["GoalSequenceTransform", "find_goal_transform"]
 
@@ -92,6 +92,9 @@ class GoalSequenceTransform(Transform):
         onehot_key: if given, also write the one-hot index ``[N]`` float32 under this key.
         critic_key: the entry read from a critic that returns a tensordict (default
             ``"state_action_value"``).
+        final_goal: the last goal's own success test (:class:`srdcil.rule.FinalGoalTest`: a radius on
+            some coordinates of the goal space, e.g. a task's own success); None (default): ``radius``
+            for every goal, as the paper.
         threshold_window: ``None`` (default): θ_i is a running max over the whole run, as the paper
             states. An int W: θ is learnt over windows of W env steps (all envs counted); at the end
             of each window θ_i becomes the running max of the pre-success Q values seen *in that
@@ -133,6 +136,7 @@ class GoalSequenceTransform(Transform):
         onehot_key: str | None = None,
         threshold_window: int | None = None,
         critic_key="state_action_value",
+        final_goal: FinalGoalTest | None = None,
     ):
         goals = torch.as_tensor(goals)
         if goals.ndim != 2 or goals.shape[0] < 1:
@@ -194,6 +198,12 @@ class GoalSequenceTransform(Transform):
         # Registered as is: a tensor passed in stays shared (in-place updates are seen by all users).
         self.register_buffer("ags_thresholds", thresholds)
         self.radius = float(radius)
+        if final_goal is not None and not isinstance(final_goal, FinalGoalTest):
+            raise TypeError(f"GoalSequenceTransform: final_goal must be a srdcil.rule.FinalGoalTest, got {final_goal!r}")
+        if final_goal is not None and final_goal.dims is not None and max(final_goal.dims) >= goals.shape[1]:
+            raise ValueError(f"GoalSequenceTransform: final_goal.dims {final_goal.dims} outside the "
+                             f"{goals.shape[1]}-D goal space")
+        self.final_goal = final_goal
         self.max_steps_per_goal = int(max_steps_per_goal)
         self.ags = bool(ags)
         self.ags_k = int(ags_k)
@@ -427,7 +437,7 @@ class GoalSequenceTransform(Transform):
                 f"GoalSequenceTransform: the env's step output has no {self.achieved_goal_key!r} (the achieved "
                 f"goal); entries: {sorted(map(str, next_tensordict.keys(True, True)))}. Pass in_keys=[<its key>]."
             )
-        success = goal_success(ag, goal, self.radius)
+        success = goal_success(ag, goal, self.radius, idx, goals.shape[0], self.final_goal)
         not_success = ~success
         last = idx >= goals.shape[0] - 1
 
