@@ -12,7 +12,9 @@
 #                                                     EXPERIMENT (default dubins_ablation) of RECIPE (default
 #                                                     recipes/sr_dcil_dubins.py) in DIR/results/EXPERIMENT/M_sS
 #                                                     (resume=auto continues its checkpoint); then the next line.
-#                                                     Start one per core; a new leg: rm DIR/claimed.txt first
+#                                                     Start one per core; a new leg: rm DIR/claimed.txt first.
+#                                                     A line 'name:seed -- CMD' runs CMD instead (a baseline),
+#                                                     with {seed} and {run} (the run's directory) filled in
 #   benchmarks/pinned_run.sh status DIR QUEUE         where a queue stands: each line done / started (its last
 #                                                     env step) / to do, then the counts
 #   benchmarks/pinned_run.sh sync RUNS DEST           copy the small files of every run directory under RUNS
@@ -30,7 +32,7 @@
 set -euo pipefail
 REPO="$(cd "$(dirname "$0")/.." && pwd)"
 SELF="$(cd "$(dirname "$0")" && pwd)/$(basename "$0")"
-usage() { sed -n '2,29p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
+usage() { sed -n '2,31p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
 [ $# -ge 2 ] || usage
 cmd=$1; dir=$2; shift 2
 case "$cmd" in
@@ -68,23 +70,30 @@ case "$cmd" in
       item=$(  # the next line with no result.json and no claim, claimed under a lock
         exec 9>"$dir/queue.lock"; flock 9
         while read -r line; do
-          line=${line%%#*}; line=${line//[[:space:]]/}; [ -n "$line" ] || continue
-          [ -f "$dir/results/$exp/${line%:*}_s${line#*:}/result.json" ] && continue
-          grep -qx "$line" "$dir/claimed.txt" 2>/dev/null && continue
-          echo "$line" >> "$dir/claimed.txt"; echo "$line"; break
+          line=${line%%#*}; key=${line%% -- *}; key=${key//[[:space:]]/}; [ -n "$key" ] || continue
+          [ -f "$dir/results/$exp/${key%:*}_s${key#*:}/result.json" ] && continue
+          grep -qx "$key" "$dir/claimed.txt" 2>/dev/null && continue
+          echo "$key" >> "$dir/claimed.txt"; echo "$line"; break
         done < "$queue")
       [ -n "$item" ] || { echo "$(date +%T) queue done"; break; }
-      m=${item%:*}; s=${item#*:}; run="$dir/results/$exp/${m}_s$s"
+      key=${item%% -- *}; key=${key//[[:space:]]/}; cmd=""; [ "$key" = "${item//[[:space:]]/}" ] || cmd=${item#* -- }
+      m=${key%:*}; s=${key#*:}; run="$dir/results/$exp/${m}_s$s"
       echo "$(date +%T) start $m seed $s"
-      rc=0; bash "$SELF" run "$dir" python "$recipe" "experiment=$exp" "method=$m" "seed=$s" "hydra.run.dir=$run" "$@" \
-        > "$dir/results/$exp/${m}_s$s.log" 2>&1 || rc=$?
+      rc=0
+      if [ -n "$cmd" ]; then
+        cmd=${cmd//\{seed\}/$s}; cmd=${cmd//\{run\}/$run}
+        bash "$SELF" run "$dir" bash -c "$cmd" > "$dir/results/$exp/${m}_s$s.log" 2>&1 || rc=$?
+      else
+        bash "$SELF" run "$dir" python "$recipe" "experiment=$exp" "method=$m" "seed=$s" "hydra.run.dir=$run" "$@" \
+          > "$dir/results/$exp/${m}_s$s.log" 2>&1 || rc=$?
+      fi
       echo "$(date +%T) end $m seed $s rc=$rc"
     done ;;
   status)
     [ $# -ge 1 ] || usage
     exp=${EXPERIMENT:-dubins_ablation}; nd=0; ns=0; nt=0
     while read -r line; do
-      line=${line%%#*}; line=${line//[[:space:]]/}; [ -n "$line" ] || continue
+      line=${line%%#*}; line=${line%% -- *}; line=${line//[[:space:]]/}; [ -n "$line" ] || continue
       run="$dir/results/$exp/${line%:*}_s${line#*:}"
       if [ -f "$run/result.json" ]; then echo "done     $line"; nd=$((nd + 1))
       elif [ -f "$run/metrics.jsonl" ]; then
@@ -95,11 +104,11 @@ case "$cmd" in
     echo "$nd done, $ns started, $nt to do" ;;
   sync)
     [ $# -ge 1 ] || usage
-    src=$dir; dest=$1; n=0
+    src=$dir; dest=$1; n=0; mkdir -p "$dest"
     for d in "$src"/*/; do
-      [ -f "$d/config.yaml" ] || [ -f "$d/metrics.jsonl" ] || continue
+      [ -f "$d/config.yaml" ] || [ -f "$d/config.json" ] || [ -f "$d/metrics.jsonl" ] || continue
       name=$(basename "$d"); mkdir -p "$dest/$name"
-      for f in config.yaml metrics.jsonl result.json "$d"/*.png; do
+      for f in config.yaml config.json metrics.jsonl result.json "$d"/*.png; do
         f=$(basename "$f"); [ -f "$d/$f" ] && cp "$d/$f" "$dest/$name/"
       done
       n=$((n + 1))

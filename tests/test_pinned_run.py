@@ -93,3 +93,35 @@ def test_status_says_what_is_done_started_and_to_do(tmp_path):
     assert r.returncode == 0, r.stderr
     assert r.stdout.splitlines() == ["done     db:0", "started  vc:0 (at 12000 env steps)", "to do    vanilla:0",
                                      "1 done, 1 started, 1 to do"]
+
+
+BASELINE_STUB = """#!/usr/bin/env bash
+# stands in for the venv's python running a baseline script: records its arguments, writes result.json into --out
+prev=""; for a in "$@"; do [ "$prev" = "--out" ] && out=$a; prev=$a; done
+echo "baseline $*" >> "$CALLS"; mkdir -p "$out"; echo '{}' > "$out/result.json"; echo '{}' > "$out/config.json"
+"""
+
+
+def test_queue_runs_a_baseline_line_with_its_own_command(tmp_path):
+    d = tmp_path / "pin"
+    (d / "wt").mkdir(parents=True)
+    (d / "venv" / "bin").mkdir(parents=True)
+    (d / "venv" / "bin" / "python").write_text(BASELINE_STUB)
+    (d / "venv" / "bin" / "python").chmod(0o755)
+    (d / "COMMIT").write_text("abc\n")
+    q = tmp_path / "plan.txt"
+    q.write_text("sac_single:2 -- python recipes/sac_dmc.py --out {run} --seed {seed} --single-start  # SAC\n")
+    env = dict(os.environ, CALLS=str(tmp_path / "calls.txt"), EXPERIMENT="dmc_comparison")
+    r = subprocess.run(["bash", str(SCRIPT), "queue", str(d), str(q), "precision=fp32"], env=env,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and "queue done" in r.stdout, r.stdout + r.stderr
+    run = (d / "results" / "dmc_comparison" / "sac_single_s2").resolve()
+    # the line's own command, {run} and {seed} filled in, the recipe's overrides not appended
+    assert (tmp_path / "calls.txt").read_text().split() == [
+        "baseline", "recipes/sac_dmc.py", "--out", str(run), "--seed", "2", "--single-start"]
+    assert (d / "claimed.txt").read_text().split() == ["sac_single:2"]
+    st = _sh("status", d, q, env=env)
+    assert st.stdout.splitlines()[0] == "done     sac_single:2"
+    dest = tmp_path / "dest"
+    assert _sh("sync", d / "results" / "dmc_comparison", dest).returncode == 0
+    assert sorted(p.name for p in (dest / "sac_single_s2").iterdir()) == ["config.json", "result.json"]
