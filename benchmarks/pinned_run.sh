@@ -8,7 +8,8 @@
 #                                                     (relative paths in CMD are relative to DIR/wt)
 #   benchmarks/pinned_run.sh queue DIR QUEUE [OVERRIDES...]  one worker (one core): run the next 'method:seed' line
 #                                                     of the file QUEUE that has no result.json yet and that no other
-#                                                     worker of this leg has claimed (DIR/claimed.txt), as
+#                                                     worker of this leg has claimed (DIR/claimed.txt) and that is
+#                                                     not committed beside QUEUE (QUEUE's dir/M_sS/result.json), as
 #                                                     EXPERIMENT (default dubins_ablation) of RECIPE (default
 #                                                     recipes/sr_dcil_dubins.py) in DIR/results/EXPERIMENT/M_sS
 #                                                     (resume=auto continues its checkpoint); then the next line.
@@ -32,7 +33,7 @@
 set -euo pipefail
 REPO="$(cd "$(dirname "$0")/.." && pwd)"
 SELF="$(cd "$(dirname "$0")" && pwd)/$(basename "$0")"
-usage() { sed -n '2,31p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
+usage() { sed -n '2,32p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
 [ $# -ge 2 ] || usage
 cmd=$1; dir=$2; shift 2
 case "$cmd" in
@@ -72,6 +73,7 @@ case "$cmd" in
         while read -r line; do
           line=${line%%#*}; key=${line%% -- *}; key=${key//[[:space:]]/}; [ -n "$key" ] || continue
           [ -f "$dir/results/$exp/${key%:*}_s${key#*:}/result.json" ] && continue
+          [ -f "$(dirname "$queue")/${key%:*}_s${key#*:}/result.json" ] && continue  # committed beside the plan
           grep -qx "$key" "$dir/claimed.txt" 2>/dev/null && continue
           echo "$key" >> "$dir/claimed.txt"; echo "$line"; break
         done < "$queue")
@@ -95,7 +97,8 @@ case "$cmd" in
     while read -r line; do
       line=${line%%#*}; line=${line%% -- *}; line=${line//[[:space:]]/}; [ -n "$line" ] || continue
       run="$dir/results/$exp/${line%:*}_s${line#*:}"
-      if [ -f "$run/result.json" ]; then echo "done     $line"; nd=$((nd + 1))
+      if [ -f "$run/result.json" ] || [ -f "$(dirname "$1")/${line%:*}_s${line#*:}/result.json" ]; then
+        echo "done     $line"; nd=$((nd + 1))
       elif [ -f "$run/metrics.jsonl" ]; then
         last=$(grep -o '"env_steps": [0-9]*' "$run/metrics.jsonl" | tail -n 1 | grep -o '[0-9]*$' || true)
         echo "started  $line (at ${last:-0} env steps)"; ns=$((ns + 1))

@@ -125,3 +125,23 @@ def test_queue_runs_a_baseline_line_with_its_own_command(tmp_path):
     dest = tmp_path / "dest"
     assert _sh("sync", d / "results" / "dmc_comparison", dest).returncode == 0
     assert sorted(p.name for p in (dest / "sac_single_s2").iterdir()) == ["config.json", "result.json"]
+
+
+def test_queue_and_status_count_a_run_committed_beside_the_plan_as_done(tmp_path):
+    d = tmp_path / "pin"
+    (d / "wt").mkdir(parents=True)
+    (d / "venv" / "bin").mkdir(parents=True)
+    (d / "venv" / "bin" / "python").write_text(STUB)
+    (d / "venv" / "bin" / "python").chmod(0o755)
+    (d / "COMMIT").write_text("abc\n")
+    plan_dir = tmp_path / "repo" / "results" / "dubins_ablation"  # the repo's copy of the series
+    (plan_dir / "db_s0").mkdir(parents=True)
+    (plan_dir / "db_s0" / "result.json").write_text("{}")  # committed by an earlier session, on another machine
+    q = plan_dir / "plan.txt"
+    q.write_text("db:0\nvc:0\n")
+    st = _sh("status", d, q)
+    assert st.stdout.splitlines()[:2] == ["done     db:0", "to do    vc:0"]
+    env = dict(os.environ, CALLS=str(tmp_path / "calls.txt"))
+    r = subprocess.run(["bash", str(SCRIPT), "queue", str(d), str(q)], env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert [c.split()[0] for c in (tmp_path / "calls.txt").read_text().splitlines()] == ["vc:0"]
