@@ -17,7 +17,8 @@
 #                                                     A line 'name:seed -- CMD' runs CMD instead (a baseline),
 #                                                     with {seed} and {run} (the run's directory) filled in
 #   benchmarks/pinned_run.sh status DIR QUEUE         where a queue stands: each line done / started (its last
-#                                                     env step) / to do, then the counts
+#                                                     env step) / to do, then the counts (EXPERIMENT defaults
+#                                                     to NAME for a QUEUE in results/NAME/)
 #   benchmarks/pinned_run.sh sync RUNS DEST           copy the small files of every run directory under RUNS
 #                                                     (config, metrics, result, pictures; never checkpoints) to
 #                                                     DEST/<run>, and the series' COMMIT (found in RUNS or
@@ -33,7 +34,7 @@
 set -euo pipefail
 REPO="$(cd "$(dirname "$0")/.." && pwd)"
 SELF="$(cd "$(dirname "$0")" && pwd)/$(basename "$0")"
-usage() { sed -n '2,32p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
+usage() { sed -n '2,33p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
 [ $# -ge 2 ] || usage
 cmd=$1; dir=$2; shift 2
 case "$cmd" in
@@ -93,7 +94,9 @@ case "$cmd" in
     done ;;
   status)
     [ $# -ge 1 ] || usage
-    exp=${EXPERIMENT:-dubins_ablation}; nd=0; ns=0; nt=0
+    plan_dir=$(cd "$(dirname "$1")" && pwd)  # a plan in results/NAME/ names its experiment
+    [ "$(basename "$(dirname "$plan_dir")")" = results ] && dflt=$(basename "$plan_dir") || dflt=dubins_ablation
+    exp=${EXPERIMENT:-$dflt}; nd=0; ns=0; nt=0
     while read -r line; do
       line=${line%%#*}; line=${line%% -- *}; line=${line//[[:space:]]/}; [ -n "$line" ] || continue
       run="$dir/results/$exp/${line%:*}_s${line#*:}"

@@ -145,3 +145,14 @@ def test_queue_and_status_count_a_run_committed_beside_the_plan_as_done(tmp_path
     r = subprocess.run(["bash", str(SCRIPT), "queue", str(d), str(q)], env=env, capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     assert [c.split()[0] for c in (tmp_path / "calls.txt").read_text().splitlines()] == ["vc:0"]
+
+
+def test_status_takes_the_experiment_from_a_plan_in_results(tmp_path):
+    runs = tmp_path / "pin" / "results" / "dmc_comparison"
+    (runs / "db_s0").mkdir(parents=True)
+    (runs / "db_s0" / "metrics.jsonl").write_text('{"env_steps": 5000}\n')
+    q = tmp_path / "repo" / "results" / "dmc_comparison" / "plan.txt"
+    q.parent.mkdir(parents=True)
+    q.write_text("db:0\n")
+    env = {k: v for k, v in os.environ.items() if k != "EXPERIMENT"}
+    assert _sh("status", tmp_path / "pin", q, env=env).stdout.splitlines()[0] == "started  db:0 (at 5000 env steps)"
