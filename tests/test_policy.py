@@ -128,14 +128,14 @@ def test_robustness_evaluates_each_policy_at_each_start_noise(solved_run, tmp_pa
     run, _ = solved_run
     path = run / "policy_best.pt"
     res = robustness.main([str(path), "--sigmas", "0", "0.3", "--episodes", "6", "--seed", "3",
-                           "--out", str(tmp_path / "rob.png")])
+                           "--out", str(tmp_path / "new" / "rob.png")])  # a folder not there yet
     levels = res[str(path)]["levels"]
     assert [lv["start_noise"] for lv in levels] == [0.0, 0.3]
     assert levels[0]["chain_success_rate"] == 1.0  # the clean start: the policy's own evaluation
     want = evaluate_policy(load_policy(path), 6, start_noise=0.3, seed=3)["summary"]["chain_success_rate"]
     assert levels[1]["chain_success_rate"] == want  # seeded: the same episodes as a direct evaluation
-    assert (tmp_path / "rob.png").stat().st_size > 0
-    assert json.loads((tmp_path / "rob.json").read_text()) == json.loads(json.dumps(res))
+    assert (tmp_path / "new" / "rob.png").stat().st_size > 0
+    assert json.loads((tmp_path / "new" / "rob.json").read_text()) == json.loads(json.dumps(res))
 
 
 def test_evaluate_cli_writes_json_and_a_maze_video(solved_run, tmp_path):

@@ -66,6 +66,7 @@ def main(argv=None) -> dict:
     import torch
 
     torch.set_num_threads(1)
+    a.out.parent.mkdir(parents=True, exist_ok=True)  # before the evaluations, not after them
     res = robustness(a.policies, a.sigmas, a.episodes, a.seed)
     _plot(res, a.out)
     a.out.with_suffix(".json").write_text(json.dumps(res, indent=1) + "\n")
