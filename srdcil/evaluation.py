@@ -21,13 +21,44 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.envs import TransformedEnv
+from torchrl.envs import Transform, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from srdcil.envs.base import Task
 from srdcil.transforms import find_goal_transform
 
 __all__ = ["evaluate_chain", "evaluate", "Evaluator", "ValueProbe", "ActorAverages"]
+
+
+class _ResetInput(Transform):
+    """Writes ``entries`` into the reset input of its env. ``TransformedEnv.reset`` keeps, of what it is
+    given, only the reset keys and the state spec's entries, so a ``reset_state`` (which no env of ours
+    declares in a spec: it is no step input) would be dropped before the base env reads it; a transform's
+    ``_reset_env_preprocess`` runs after that selection."""
+
+    def __init__(self, entries: TensorDictBase):
+        super().__init__(in_keys=[], out_keys=[])
+        self.entries = entries
+
+    def _reset_env_preprocess(self, tensordict: TensorDictBase | None) -> TensorDictBase:
+        if tensordict is None:
+            return self.entries.clone()
+        return tensordict.update(self.entries.to(tensordict.device) if tensordict.device else self.entries)
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        return tensordict_reset
+
+
+def reset_with(env, reset: TensorDictBase):
+    """``env.reset(reset)``, with every entry of ``reset`` reaching the base env also through a
+    ``TransformedEnv`` (e.g. ``reset_state``: start elsewhere than s_0)."""
+    if not isinstance(env, TransformedEnv):
+        return env.reset(reset.clone())
+    env.append_transform(_ResetInput(reset.clone()))
+    try:
+        return env.reset()
+    finally:
+        env.transform.pop()
 
 
 @torch.no_grad()
@@ -55,7 +86,7 @@ def evaluate_chain(env, policy, *, max_steps: int | None = None,
             rollout = env.rollout(int(max_steps), policy, break_when_any_done=True)
         else:
             rollout = env.rollout(int(max_steps), policy, break_when_any_done=True, auto_reset=False,
-                                  tensordict=env.reset(reset.clone()))
+                                  tensordict=reset_with(env, reset))
     while rollout.batch_dims > 1:
         rollout = rollout[0]
     success = rollout["next", gst.key("success")].reshape(-1)

@@ -114,3 +114,20 @@ def test_with_actor_ema_the_policy_file_holds_the_average(tmp_path, wiggle_demo)
     key = next(k for k in pol["actor"] if k.endswith("weight"))
     assert not torch.equal(pol["actor"][key], ck["actor"][key])  # not the actor's own weights
     assert pol["actor"].keys() == avg.keys()
+
+
+def test_a_reset_state_reaches_the_base_env_through_the_transforms():
+    # TransformedEnv.reset keeps only the reset keys and the state spec of its input: reset_with must not
+    from tensordict import TensorDict
+    from torchrl.envs import InitTracker
+
+    from srdcil.envs.dubins.env import DubinsMazeEnv
+    from srdcil.evaluation import reset_with
+
+    env = TransformedEnv(DubinsMazeEnv(), InitTracker())
+    s0 = env.reset()["observation"].clone()
+    state = torch.tensor([[1.0, 1.5, 0.3]], dtype=torch.float64)
+    assert not torch.allclose(s0.double(), state)
+    assert torch.allclose(reset_with(env, TensorDict({"reset_state": state}, batch_size=[1]))["observation"].double(),
+                          state)
+    assert len(env.transform) == 1 and torch.equal(env.reset()["observation"], s0)  # the env is as it was

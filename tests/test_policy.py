@@ -134,6 +134,11 @@ def test_robustness_evaluates_each_policy_at_each_start_noise(solved_run, tmp_pa
     assert levels[0]["chain_success_rate"] == 1.0  # the clean start: the policy's own evaluation
     want = evaluate_policy(load_policy(path), 6, start_noise=0.3, seed=3)["summary"]["chain_success_rate"]
     assert levels[1]["chain_success_rate"] == want  # seeded: the same episodes as a direct evaluation
+    pol = load_policy(path)
+    for rollout, start in evaluate_policy(pol, 2, start_noise=0.3, seed=3, keep_rollouts=2)["rollouts"]:
+        first = rollout[0]["observation"].reshape(-1).double()
+        assert torch.allclose(first, start.double(), atol=1e-6)  # the episode began at the perturbed state
+        assert not torch.allclose(first, pol.task.start_noise(0.0, torch.Generator()).double())
     assert (tmp_path / "new" / "rob.png").stat().st_size > 0
     assert json.loads((tmp_path / "new" / "rob.json").read_text()) == json.loads(json.dumps(res))
 
