@@ -24,10 +24,15 @@ def robustness(paths, sigmas, episodes: int, seed: int = 0) -> dict:
     out = {}
     for path in paths:
         pol = load_policy(path)
-        out[str(path)] = {"env_steps": pol.env_steps, "levels": [
+        out[str(path)] = {"env": pol.task.name, "env_steps": pol.env_steps, "levels": [
             {k: v for k, v in evaluate_policy(pol, episodes, start_noise=s, seed=seed)["summary"].items()
              if k not in ("policy", "env")} for s in sigmas]}
     return out
+
+
+# what each task's start_noise perturbs (srdcil/envs/*/task.py)
+_NOISE_ON = {"dubins": "x, y in maze units; heading in rad", "fetch": "the object's x, y, metres",
+             "dmc_manipulator": "the ball's x, metres"}
 
 
 def _plot(res: dict, out: Path) -> None:
@@ -44,7 +49,9 @@ def _plot(res: dict, out: Path) -> None:
         hi = [max(0.0, lv["chain_success_ci95"][1] - lv["chain_success_rate"]) for lv in r["levels"]]
         name = Path(path).parent.name or Path(path).stem
         ax.errorbar([x + 0.002 * i for x in s], y, yerr=[lo, hi], marker="o", ms=3, lw=1, capsize=2, label=name)
-    ax.set_xlabel("start-state noise sigma (x, y in maze units; heading in rad)")
+    envs = {r.get("env") for r in res.values()}
+    what = _NOISE_ON.get(envs.pop(), "the task's own perturbation") if len(envs) == 1 else "each task's own perturbation"
+    ax.set_xlabel(f"start-state noise sigma ({what})")
     ax.set_ylabel("chain success rate (95 % CI)")
     ax.set_ylim(-0.03, 1.03)
     ax.legend(fontsize=7)
