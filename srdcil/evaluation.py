@@ -27,7 +27,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from srdcil.envs.base import Task
 from srdcil.transforms import find_goal_transform
 
-__all__ = ["evaluate_chain", "evaluate", "Evaluator", "ValueProbe", "ActorAverages"]
+__all__ = ["evaluate_chain", "reset_with", "evaluate", "Evaluator", "ValueProbe", "ActorAverages"]
 
 
 class _ResetInput(Transform):

@@ -51,13 +51,19 @@ echo "$m:$s $*" >> "$CALLS"; sleep 0.3; mkdir -p "$out"; echo '{}' > "$out/resul
 """
 
 
-def test_queue_workers_run_each_missing_item_once_in_order(tmp_path):
+def _pinned_dir(tmp_path, python_stub: str) -> Path:
+    """A set-up DIR (worktree, COMMIT) whose venv's python is ``python_stub``."""
     d = tmp_path / "pin"
     (d / "wt").mkdir(parents=True)
     (d / "venv" / "bin").mkdir(parents=True)
-    (d / "venv" / "bin" / "python").write_text(STUB)
+    (d / "venv" / "bin" / "python").write_text(python_stub)
     (d / "venv" / "bin" / "python").chmod(0o755)
     (d / "COMMIT").write_text("abc\n")
+    return d
+
+
+def test_queue_workers_run_each_missing_item_once_in_order(tmp_path):
+    d = _pinned_dir(tmp_path, STUB)
     done = d / "results" / "dubins_ablation" / "db_s1"
     done.mkdir(parents=True)
     (done / "result.json").write_text("{}")  # finished already: skipped
@@ -103,12 +109,7 @@ echo "baseline $*" >> "$CALLS"; mkdir -p "$out"; echo '{}' > "$out/result.json";
 
 
 def test_queue_runs_a_baseline_line_with_its_own_command(tmp_path):
-    d = tmp_path / "pin"
-    (d / "wt").mkdir(parents=True)
-    (d / "venv" / "bin").mkdir(parents=True)
-    (d / "venv" / "bin" / "python").write_text(BASELINE_STUB)
-    (d / "venv" / "bin" / "python").chmod(0o755)
-    (d / "COMMIT").write_text("abc\n")
+    d = _pinned_dir(tmp_path, BASELINE_STUB)
     q = tmp_path / "plan.txt"
     q.write_text("sac_single:2 -- python recipes/sac_dmc.py --out {run} --seed {seed} --single-start  # SAC\n")
     env = dict(os.environ, CALLS=str(tmp_path / "calls.txt"), EXPERIMENT="dmc_comparison")
@@ -128,12 +129,7 @@ def test_queue_runs_a_baseline_line_with_its_own_command(tmp_path):
 
 
 def test_queue_and_status_count_a_run_committed_beside_the_plan_as_done(tmp_path):
-    d = tmp_path / "pin"
-    (d / "wt").mkdir(parents=True)
-    (d / "venv" / "bin").mkdir(parents=True)
-    (d / "venv" / "bin" / "python").write_text(STUB)
-    (d / "venv" / "bin" / "python").chmod(0o755)
-    (d / "COMMIT").write_text("abc\n")
+    d = _pinned_dir(tmp_path, STUB)
     plan_dir = tmp_path / "repo" / "results" / "dubins_ablation"  # the repo's copy of the series
     (plan_dir / "db_s0").mkdir(parents=True)
     (plan_dir / "db_s0" / "result.json").write_text("{}")  # committed by an earlier session, on another machine
