@@ -16,15 +16,26 @@ is appended to ``OUT/metrics.jsonl``: ``env_steps``, ``success_rate`` (episodes 
 target" held at some step), ``mean_return`` (the suite's return), ``updates``, ``wall_s``. ``OUT/config.json``
 holds the arguments, ``OUT/result.json`` (written at the end) the totals. ``python -m
 srdcil.analysis.task_success`` compares these runs with SR-DCIL's on the task's success.
+
+Every ``--checkpoint-interval`` env steps (at the first episode end from there on, and at the end) the whole run
+state goes to ``OUT/checkpoint.pt``: networks, target networks, temperature, optimisers, the replay buffer, the
+torch / numpy / suite RNG states and the loop's counters. The same command with ``OUT/checkpoint.pt`` present
+continues it (``--resume auto``, the default; ``--resume never`` starts afresh), with a larger ``--frames`` too;
+because a checkpoint is taken at an episode end, the resumed run is the run never stopped, number for number
+(``tests/test_sac_dmc.py``). A checkpoint that does not match the arguments (other than ``--frames``,
+``--eval-interval``, ``--checkpoint-interval``, ``--threads``) is refused with one line naming them.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+#: arguments a resumed run may change; any other difference from the checkpoint's is refused
+RESUME_MAY_CHANGE = ("frames", "eval_interval", "checkpoint_interval", "threads", "resume", "out")
 
 
 def _default_hidden() -> list[int]:
@@ -55,6 +66,11 @@ def parse_args(argv=None):
     p.add_argument("--tau", type=float, default=0.005, help="Polyak rate of the target Q networks")
     p.add_argument("--hidden", type=int, nargs="+", default=None,
                    help="hidden layer widths; None: network.hidden of recipes/config/env/dmc_manipulator.yaml")
+    p.add_argument("--episode-steps", type=int, default=1000, help="env steps per episode (the suite's 1000)")
+    p.add_argument("--checkpoint-interval", type=int, default=10_000,
+                   help="env steps between checkpoints (OUT/checkpoint.pt, at the next episode end); 0: never")
+    p.add_argument("--resume", choices=("auto", "never"), default="auto",
+                   help="auto: continue OUT/checkpoint.pt when it exists; never: start afresh")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     args = p.parse_args(argv)
     if args.hidden is None:
@@ -64,10 +80,11 @@ def parse_args(argv=None):
     return args
 
 
-def make_env(single_start: bool, seed: int):
+def make_env(single_start: bool, seed: int, episode_steps: int = 1000):
     from srdcil.envs.dmc_manipulator.env import ManipulatorBringBallEnv
 
-    env = ManipulatorBringBallEnv(single_start=single_start, time_limit=10.0)  # the suite's 1000-step episodes
+    # the suite's control step is 0.01 s: 10 s = its 1000-step episodes (the half step keeps the float sum clear)
+    env = ManipulatorBringBallEnv(single_start=single_start, time_limit=(episode_steps - 0.5) * 0.01)
     env.set_seed(seed)
     return env
 
@@ -111,6 +128,12 @@ def evaluate(env, actor, episodes: int, seed: int) -> dict:
     return {"success_rate": sum(succ) / len(succ), "mean_return": round(sum(ret) / len(ret), 3)}
 
 
+def _resume_mismatch(saved: dict, args) -> list[str]:
+    now = vars(args)
+    return [f"{k}: {saved.get(k)!r} -> {now.get(k)!r}" for k in sorted(set(saved) | set(now))
+            if k not in RESUME_MAY_CHANGE and saved.get(k) != now.get(k)]
+
+
 def main(argv=None):
     args = parse_args(argv)
     import numpy as np
@@ -119,17 +142,28 @@ def main(argv=None):
     from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
     from torchrl.objectives import SACLoss, SoftUpdate
 
+    from srdcil import checkpoint as ckpt_io
+
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     np.random.seed(args.seed)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    ckpt_path, metrics_path = out / "checkpoint.pt", out / "metrics.jsonl"
+    ckpt = None
+    if args.resume == "auto" and ckpt_path.is_file():
+        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        bad = _resume_mismatch(ckpt["args"], args)
+        if bad:
+            sys.exit(f"error: {ckpt_path} was made with other arguments ({'; '.join(bad)}): "
+                     f"use them, another --out, or --resume never")
+        if ckpt["frames"] >= args.frames:
+            print(f"{ckpt_path} is at {ckpt['frames']} env steps, the budget --frames {args.frames}: nothing to do")
+            return
     (out / "config.json").write_text(json.dumps(vars(args), indent=1) + "\n")
-    metrics_path = out / "metrics.jsonl"
-    metrics_path.write_text("")
 
-    env = make_env(args.single_start, args.seed)
-    eval_env = make_env(args.single_start, args.seed + 10_000)
+    env = make_env(args.single_start, args.seed, args.episode_steps)
+    eval_env = make_env(args.single_start, args.seed + 10_000, args.episode_steps)
     actor, qvalue = make_agent(env, args.hidden)
     loss = SACLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", alpha_init=1.0,
                    action_spec=env.action_spec, delay_qvalue=True)
@@ -138,12 +172,31 @@ def main(argv=None):
     opt_actor = torch.optim.Adam(list(loss.actor_network_params.flatten_keys().values()), lr=args.lr)
     opt_critic = torch.optim.Adam(list(loss.qvalue_network_params.flatten_keys().values()), lr=args.lr)
     opt_alpha = torch.optim.Adam([loss.log_alpha], lr=args.lr)
+    opts = (opt_critic, opt_actor, opt_alpha)
     buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(args.buffer_size), batch_size=args.batch_size)
-    collector = Collector(env, actor, frames_per_batch=args.frames_per_batch, total_frames=args.frames,
-                          init_random_frames=args.init_random_frames, auto_register_policy_transforms=False)
 
-    t0 = time.perf_counter()
-    frames, updates, next_eval, credit = 0, 0, 0, 0.0
+    frames, updates, credit, wall0, last = 0, 0, 0.0, 0.0, {}
+    suite_random = env.suite_task._random
+    if ckpt is not None:  # everything the loop would hold at the checkpoint's episode end
+        loss.load_state_dict(ckpt["loss"])
+        for o, sd in zip(opts, ckpt["optimisers"]):
+            o.load_state_dict(sd)
+        buffer.load_state_dict(ckpt["buffer"])
+        frames, updates, credit, wall0, last = (ckpt[k] for k in ("frames", "updates", "credit", "wall_s", "last"))
+        # the suite's random state as it was before its last reset: the collector's first reset redraws that start
+        suite_random.set_state(ckpt["suite_random_before_reset"])
+        rows = [r for r in metrics_path.read_text().splitlines() if r and json.loads(r)["env_steps"] <= frames]
+        metrics_path.write_text("".join(r + "\n" for r in rows))
+        print(f"resuming {ckpt_path} at {frames} env steps", flush=True)
+    else:
+        metrics_path.write_text("")
+    collector = Collector(env, actor, frames_per_batch=args.frames_per_batch, total_frames=args.frames - frames,
+                          init_random_frames=max(0, args.init_random_frames - frames),
+                          auto_register_policy_transforms=False)
+    if ckpt is not None:
+        ckpt_io.set_rng_state(ckpt["rng"])
+
+    t0 = time.perf_counter() - wall0
 
     def log(extra=None):
         m = {"env_steps": frames, **evaluate(eval_env, actor, args.eval_episodes, args.seed + 10_000),
@@ -152,22 +205,32 @@ def main(argv=None):
             f.write(json.dumps(m) + "\n")
         print(json.dumps(m), flush=True)
 
-    log()
-    next_eval = args.eval_interval
-    last = {}
+    def save():
+        ckpt_io.save(ckpt_path, {
+            "args": vars(args), "frames": frames, "updates": updates, "credit": credit, "last": last,
+            "wall_s": time.perf_counter() - t0, "loss": loss.state_dict(),
+            "optimisers": [o.state_dict() for o in opts], "buffer": buffer.state_dict(),
+            "rng": ckpt_io.rng_state(), "suite_random_before_reset": random_before})
+
+    if ckpt is None:
+        log()
+    next_eval = (frames // args.eval_interval + 1) * args.eval_interval
+    every = args.checkpoint_interval
+    next_ckpt = (frames // every + 1) * every if every > 0 else float("inf")
+    random_before = suite_random.get_state()  # the suite's reset is the only draw from it
     for batch in collector:
         frames += batch.numel()
-        buffer.extend(batch.reshape(-1))
+        buffer.extend(batch.exclude("collector").reshape(-1))
         if frames > args.init_random_frames:
             credit += args.utd * batch.numel()
             while credit >= 1:
                 credit -= 1
                 ltd = loss(buffer.sample())
-                for o in (opt_critic, opt_actor, opt_alpha):
+                for o in opts:
                     o.zero_grad()
                 # each loss reaches its own parameters only (SACLoss detaches the rest): one backward
                 (ltd["loss_qvalue"] + ltd["loss_actor"] + ltd["loss_alpha"]).backward()
-                for o in (opt_critic, opt_actor, opt_alpha):
+                for o in opts:
                     o.step()
                 target_update.step()
                 updates += 1
@@ -176,6 +239,11 @@ def main(argv=None):
         if frames >= next_eval:
             log(last)
             next_eval += args.eval_interval
+        episode_end = bool(batch["next", "done"].reshape(-1)[-1])
+        if episode_end and (frames >= next_ckpt or frames >= args.frames):
+            save()  # at an episode end: the next batch starts from a fresh reset, which a resume redoes
+            next_ckpt = (frames // every + 1) * every if every > 0 else float("inf")
+        random_before = suite_random.get_state()
     collector.shutdown()
     if frames % args.eval_interval:
         log(last)
