@@ -19,7 +19,8 @@ srdcil.analysis.task_success`` compares these runs with SR-DCIL's on the task's 
 
 Every ``--checkpoint-interval`` env steps (at the first episode end from there on, and at the end) the whole run
 state goes to ``OUT/checkpoint.pt``: networks, target networks, temperature, optimisers, the replay buffer, the
-torch / numpy / suite RNG states and the loop's counters. The same command with ``OUT/checkpoint.pt`` present
+torch / numpy / suite RNG states and the loop's counters (about 470 MB with the default
+``--buffer-size``). The same command with ``OUT/checkpoint.pt`` present
 continues it (``--resume auto``, the default; ``--resume never`` starts afresh), with a larger ``--frames`` too;
 because a checkpoint is taken at an episode end, the resumed run is the run never stopped, number for number
 (``tests/test_sac_dmc.py``). A checkpoint that does not match the arguments (other than ``--frames``,
