@@ -62,3 +62,23 @@ def test_resume_with_other_arguments_is_refused_in_one_line(tmp_path):
     msg = str(e.value)
     assert "lr: 0.0003 -> 0.001" in msg and "\n" not in msg
     assert "frames" not in msg  # the budget may change
+
+
+@pytest.mark.parametrize("content", [b"", b"not a checkpoint"], ids=["empty", "garbage"])
+def test_an_unreadable_checkpoint_is_refused_in_one_line(content, tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "checkpoint.pt").write_bytes(content)
+    with pytest.raises(SystemExit) as e:
+        sac_dmc.main(["--out", str(out), "--frames", "150", "--single-start", *SMALL])
+    msg = str(e.value)
+    assert "not a readable checkpoint" in msg and "\n" not in msg
+
+
+def test_a_foreign_checkpoint_is_refused_in_one_line(tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    torch.save({"format": 2, "frames": 10, "actor": {}, "loss": {}, "config": {}}, out / "checkpoint.pt")  # SR-DCIL's
+    with pytest.raises(SystemExit) as e:
+        sac_dmc.main(["--out", str(out), "--frames", "150", "--single-start", *SMALL])
+    assert "not a sac_dmc.py checkpoint" in str(e.value)
