@@ -154,11 +154,9 @@ def main(argv=None):
     ckpt = None
     if args.resume == "auto" and ckpt_path.is_file():
         try:
-            ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        except Exception as e:  # noqa: BLE001 - whatever unpickling raised (EOFError, UnpicklingError, ...)
-            why = (str(e).splitlines() or [type(e).__name__])[0][:120]
-            sys.exit(f"error: {ckpt_path}: not a readable checkpoint (truncated or corrupt: {why}): "
-                     f"delete it, another --out, or --resume never")
+            ckpt = ckpt_io.read(ckpt_path)
+        except ckpt_io.CheckpointError as e:
+            sys.exit(f"error: {e}: delete it, another --out, or --resume never")
         if not isinstance(ckpt, dict) or not {"args", "frames", "loss"} <= set(ckpt):
             sys.exit(f"error: {ckpt_path}: not a sac_dmc.py checkpoint (no args / frames / loss entries): "
                      f"another --out, or --resume never")

@@ -123,16 +123,21 @@ def save(path: Path, state: dict) -> None:
         raise CheckpointError(f"cannot write checkpoint {path}: {reason}") from e
 
 
+def read(path):
+    """``torch.load`` of a file on the CPU; an unreadable (truncated, corrupt) file is a :class:`CheckpointError`."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # noqa: BLE001 - whatever unpickling raised (EOFError, MemoryError, ...)
+        why = (str(e).splitlines() or [type(e).__name__])[0][:120]
+        raise CheckpointError(f"{path}: not a readable checkpoint (truncated or corrupt: {why})") from e
+
+
 def load(path) -> dict:
     """Read a checkpoint and :func:`upgrade` it; a missing, truncated or foreign file is a :class:`CheckpointError`."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"resume={path}: no such checkpoint file")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:  # noqa: BLE001 - whatever unpickling raised (EOFError, MemoryError, ...)
-        why = (str(e).splitlines() or [type(e).__name__])[0][:120]
-        raise CheckpointError(f"{path}: not a readable checkpoint (truncated or corrupt: {why})") from e
+    ckpt = read(path)
     if not isinstance(ckpt, dict) or not {"frames", "actor", "loss", "config"} <= set(ckpt):
         hint = " (a policy file: it has no training state)" if isinstance(ckpt, dict) and \
             ckpt.get("kind") == "srdcil-policy" else ""

@@ -20,6 +20,7 @@ import argparse
 import json
 from pathlib import Path
 
+from srdcil.checkpoint import read as read_checkpoint
 from srdcil.cli import command
 from srdcil.errors import UserError
 
@@ -83,10 +84,7 @@ def main(argv=None) -> dict:
         path = run / "checkpoint.pt"
         if not path.is_file():
             raise UserError(f"{path}: no such checkpoint (a run of recipes/sac_dmc.py writes one)")
-        try:
-            ckpt = torch.load(path, map_location="cpu", weights_only=False)
-        except Exception as e:  # noqa: BLE001 - whatever unpickling raised
-            raise UserError(f"{path}: not a readable checkpoint ({(str(e).splitlines() or [type(e).__name__])[0]})")
+        ckpt = read_checkpoint(path)  # a CheckpointError (a UserError) when unreadable
         if not isinstance(ckpt, dict) or "buffer" not in ckpt:
             raise UserError(f"{path}: not a sac_dmc.py checkpoint (no replay buffer)")
         summary = {"env_steps": int(ckpt.get("frames", 0)), **replay_summary(ckpt["buffer"])}
