@@ -83,3 +83,23 @@ def test_an_option_beyond_the_paper_is_its_own_arm(tmp_path):
     assert sorted(by) == ["db_ags", "db_ags + goals-left cap"]
     assert [r["seed"] for r in by["db_ags"]] == [0, 1]
     assert ts.summarise_task_success(by)["db_ags + goals-left cap"]["median_steps_to_success"] == 15000
+
+
+def test_how_far_the_chain_got_is_summarised_for_srdcil_only(tmp_path):
+    for seed, goals in [(0, [2, 6, 4]), (1, [1, 3, 12])]:
+        d = tmp_path / f"db_s{seed}"
+        d.mkdir()
+        (d / "config.yaml").write_text(yaml.safe_dump({"method": "db", "seed": seed}))
+        rows = [{"env_steps": (i + 1) * 1000, "eval/goals_reached": g, "eval/n_goals": 12,
+                 "eval/task_success": g == 12} for i, g in enumerate(goals)]
+        (d / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    _sac_run(tmp_path, 0, [0.0, 0.0])
+    by = ts.collect_task_runs([tmp_path])
+    assert by["db"][0]["progress"] == [(1000, 2 / 12), (2000, 0.5), (3000, 4 / 12)]
+    s = ts.summarise_task_success(by)
+    assert [r["best_chain_share"] for r in s["db"]["runs"]] == [0.5, 1.0]  # the best evaluation, not the last
+    assert s["db"]["mean_best_chain_share"] == 0.75
+    assert s["sac (single start)"]["mean_best_chain_share"] is None
+    assert ts.summarise_task_success(by, budget=2000)["db"]["runs"][1]["best_chain_share"] == 0.25
+    md = ts._markdown(s, None)
+    assert "| `db` | 2 | 1/2 | not reached | 0.17 | 0.75 |" in md and "| 0.00 | — |" in md

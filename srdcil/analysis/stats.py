@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-__all__ = ["LOCF_RULE", "run_outcomes", "locf_on_grid", "trailing_mean", "run_curves", "mean_band",
+__all__ = ["LOCF_RULE", "run_outcomes", "locf_on_grid", "trailing_mean", "run_curves", "mean_band", "nan_mean_std",
            "solved_fraction", "score_at", "censored_quantile", "steps_to_solve", "rliable_error",
            "rliable_estimates", "profile_taus", "after_success", "summarise"]
 
@@ -101,6 +101,13 @@ def mean_band(runs, grid, field: str = "goals_norm", smooth: int = 1):
     """(mean, std/2, n) across runs at each grid point, over the runs that have an evaluation by then."""
     c = run_curves(runs, grid, field, smooth)
     return _nanmean(c), _nanstd(c) / 2, np.sum(~np.isnan(c), axis=0)
+
+
+def nan_mean_std(curves) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and std over the first axis of (n_runs, n_points) curves, ignoring NaN (NaN where no run has a
+    value)."""
+    c = np.asarray(curves, dtype=float)
+    return _nanmean(c), _nanstd(c)
 
 
 def _nanmean(c):
