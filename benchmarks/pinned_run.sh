@@ -51,7 +51,9 @@ case "$cmd" in
     if [ ! -x "$dir/venv/bin/python" ]; then
       python3 -m venv "$dir/venv"
       "$dir/venv/bin/pip" install -q torch==2.13.0
-      "$dir/venv/bin/pip" install -q -e "$dir/wt[$extras]"
+      # the tested versions where the pinned commit has them (constraints.txt), else pyproject's ranges
+      cons=(); [ -f "$dir/wt/constraints.txt" ] && cons=(-c "$dir/wt/constraints.txt")
+      "$dir/venv/bin/pip" install -q "${cons[@]}" -e "$dir/wt[$extras]"
     fi
     echo "$commit" > "$dir/COMMIT"
     echo "pinned at $commit: $dir/wt, venv $dir/venv" ;;
