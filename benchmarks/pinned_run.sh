@@ -32,6 +32,9 @@
 # or, with a list of the runs still to do (lines 'db_ags:1'), one worker per core, never an idle core at the tail:
 #   for i in 1 2; do nohup benchmarks/pinned_run.sh queue ~/series todo.txt > ~/series/worker$i.log 2>&1 & done
 set -euo pipefail
+# The whole script is one function, read in full before it runs: editing this file while a queue worker
+# runs it (for hours) cannot change or break that worker.
+main() {
 REPO="$(cd "$(dirname "$0")/.." && pwd)"
 SELF="$(cd "$(dirname "$0")" && pwd)/$(basename "$0")"
 usage() { sed -n '2,33p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
@@ -127,3 +130,5 @@ case "$cmd" in
     echo "copied the small files of $n runs to $dest" ;;
   *) usage ;;
 esac
+}
+main "$@"; exit

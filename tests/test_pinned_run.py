@@ -2,6 +2,7 @@
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "pinned_run.sh"
@@ -152,3 +153,23 @@ def test_status_takes_the_experiment_from_a_plan_in_results(tmp_path):
     q.write_text("db:0\n")
     env = {k: v for k, v in os.environ.items() if k != "EXPERIMENT"}
     assert _sh("status", tmp_path / "pin", q, env=env).stdout.splitlines()[0] == "started  db:0 (at 5000 env steps)"
+
+
+def test_a_queue_worker_survives_its_script_being_edited_while_it_runs(tmp_path):
+    """Bash reads a plain script as it runs it: an edit mid-run used to break a worker after its first run."""
+    script = tmp_path / "pinned_run.sh"
+    script.write_text(SCRIPT.read_text())
+    d = _pinned_dir(tmp_path, STUB.replace("sleep 0.3", "sleep 1.5"))
+    q = tmp_path / "todo.txt"
+    q.write_text("db:0\nvc:0\n")
+    env = dict(os.environ, CALLS=str(tmp_path / "calls.txt"))
+    w = subprocess.Popen(["bash", str(script), "queue", str(d), str(q)], env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.time() + 30
+    while not (tmp_path / "calls.txt").exists() and time.time() < deadline:
+        time.sleep(0.05)
+    # the first run is under way: shift every byte of the file, as an edit near its top does
+    script.write_text("# an edited line\n" * 40 + SCRIPT.read_text().replace("start $m seed $s", "begin $m $s"))
+    log = w.communicate(timeout=60)[0]
+    assert w.returncode == 0 and "queue done" in log and "syntax error" not in log, log
+    assert [c.split()[0] for c in (tmp_path / "calls.txt").read_text().splitlines()] == ["db:0", "vc:0"]
