@@ -308,3 +308,9 @@ def test_value_probe_reads_the_probe_over_training_and_marks_the_first_success(t
     with pytest.raises(ValueError, match="probes this run logs: g1, grasp"):
         plots.value_probe_series(run, "g7")
     assert _is_png(plots.main(["value-probe", str(run), str(run), "--out", str(tmp_path / "probe.png")]))
+    # many runs wrap into rows of --cols panels: 5 runs at 2 a row are 3 rows (taller than wide), 2 runs 1 row
+    import matplotlib.pyplot as plt
+
+    tall = plt.imread(plots.main(["value-probe", *[str(run)] * 5, "--cols", "2", "--out", str(tmp_path / "p5.png")]))
+    wide = plt.imread(tmp_path / "probe.png")
+    assert tall.shape[0] > 2.5 * wide.shape[0] and tall.shape[1] == wide.shape[1]

@@ -561,16 +561,23 @@ def value_probe_series(run_dir: str | Path, probe: str = "grasp") -> dict:
     return {**out, "goals": (steps, goals), "n_goals": n, "first_success": first}
 
 
-def plot_value_probe(run_dirs: Sequence[str | Path], out: str | Path, probe: str = "grasp") -> Path:
+def plot_value_probe(run_dirs: Sequence[str | Path], out: str | Path, probe: str = "grasp", cols: int = 4) -> Path:
     """Fig. 5 over training: V_demo, V (runs with a V network) and Q(s, π(s)) of the demo state ``probe``
-    against env steps, one panel per run, from the runs' ``metrics.jsonl`` (``probe/<probe>/*``)."""
+    against env steps, one panel per run (at most ``cols`` panels a row), from the runs' ``metrics.jsonl``
+    (``probe/<probe>/*``)."""
     import matplotlib.pyplot as plt
 
+    if cols < 1:
+        raise ValueError(f"cols must be at least 1, got {cols}")
     series = [(Path(d), value_probe_series(d, probe)) for d in run_dirs]
-    fig, axes = plt.subplots(1, len(series), figsize=(5.2 * len(series), 3.8), squeeze=False)
+    ncols = min(len(series), cols)
+    nrows = -(-len(series) // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(5.2 * ncols, 3.8 * nrows), squeeze=False)
+    for ax in axes.flat[len(series):]:
+        ax.set_visible(False)
     styles = {"v_demo": ("V_demo(s) (return of the demo)", "black", "--"), "v": ("learned V(s)", "tab:blue", "-"),
               "q_pi": ("Q(s, π(s))", "tab:orange", "-")}
-    for ax, (d, c) in zip(axes[0], series):
+    for ax, (d, c) in zip(axes.flat, series):
         for k, (label, color, ls) in styles.items():
             if k in c:
                 ax.plot(np.asarray(c[k][0]) / 1000, c[k][1], ls, color=color, lw=1.5, label=label)
@@ -654,6 +661,7 @@ def _parser() -> argparse.ArgumentParser:
                     help="the demo state: 'grasp' (Fetch's last demo state before the grasp) or g<i> (goal i's "
                          "first demo state); default grasp")
     vp.add_argument("--out", default="value_probe.png", help="output PNG path")
+    vp.add_argument("--cols", type=int, default=4, help="panels per row (default 4)")
     return p
 
 
@@ -687,7 +695,7 @@ def main(argv: Sequence[str] | None = None) -> Path | dict:
         return print_chain_outcomes(args.ckpts, args.json)
     if args.cmd in ("run-curve", "value-probe"):
         out = (plot_run_curves(args.runs, args.out, args.keys) if args.cmd == "run-curve"
-               else plot_value_probe(args.runs, args.out, args.probe))
+               else plot_value_probe(args.runs, args.out, args.probe, args.cols))
         print(f"[srdcil.plots] wrote {out}")
         return out
     which = "live" if args.live else "target"
