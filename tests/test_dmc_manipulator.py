@@ -223,12 +223,13 @@ def test_srdcil_does_not_import_dm_control_at_import_time():
     assert out.stdout.strip() == "False", out.stderr
 
 
-def test_train_smoke(tmp_path):
+@pytest.mark.parametrize("method", ["vc_ags", "vc"])  # db and db_ags: the dmc_comparison series
+def test_train_smoke(tmp_path, method):
     from srdcil.training import train
 
     cfg = config("sr_dcil_dmc", ["network.hidden=[32,32]", "collector.total_frames=60",
                                  "collector.init_random_frames=30", "optim.batch_size=32", "env.n_envs=2",
-                                 "eval.interval=60", "progress=false", "logger.backend=", "method=vc_ags"])
+                                 "eval.interval=60", "progress=false", "logger.backend=", f"method={method}"])
     r = train(cfg, run_dir=tmp_path)
     assert r["env_steps"] == 60 and r["updates"] > 0 and r["n_goals"] == 12
     assert (tmp_path / "eval_best.png").exists()
