@@ -27,13 +27,15 @@ __all__ = [
 
 
 def setup_runtime(cfg: DictConfig) -> torch.device:
-    """Device, CPU threads and every global seed."""
+    """Device, CPU threads, denormal handling and every global seed."""
     device = torch.device(cfg.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device=cuda: torch.cuda.is_available() is False on this machine")
     if device.type == "cpu" and cfg.num_threads:
         # On a small shared CPU, one thread is faster than two (docs/measurements.md).
         torch.set_num_threads(int(cfg.num_threads))
+    # Set either way, so that a run never inherits the mode of an earlier run in the same process.
+    torch.set_flush_denormal(bool(cfg.get("flush_denormal", False)))
     seed = int(cfg.seed)
     torch.manual_seed(seed)
     np.random.seed(seed)

@@ -153,6 +153,9 @@ class TrainConfig:
     # auto | fp32 | bf16 (bf16: autocast forward passes; fp32 weights, Adam, targets, losses).
     # auto: bf16 on a CPU with native bf16 (AVX512-BF16 / AMX), fp32 elsewhere (CUDA included)
     precision: str = "fp32"
+    # flush denormal floats to zero on the CPU (torch.set_flush_denormal): Adam's moments of dead units decay into
+    # the denormal range over a long run and every op on them slows (docs/measurements.md); off = exact IEEE fp32
+    flush_denormal: bool = False
     debug: bool = False  # user errors print their traceback too
     env: EnvConfig = field(default_factory=EnvConfig)
     collector: CollectorConfig = field(default_factory=CollectorConfig)

@@ -305,6 +305,7 @@ class _Run:
                 "env_steps_per_s_after_warmup": ((p.frames - p.f_warm) / (p.t_end - p.t_warm)
                                                  if p.t_warm is not None and p.t_end > p.t_warm else None),
                 "precision": self.updater.precision,  # as resolved on this machine (precision=auto)
+                "flush_denormal": bool(c.get("flush_denormal", False)),
                 "ags_thresholds": self.gst.ags_thresholds.tolist()}
 
 

@@ -130,6 +130,31 @@ def test_fetch_recipe_smoke(tmp_path):
     assert len(r["ags_thresholds"]) == 12  # goals of the whole shipped demo (ε 0.5, 10-25 steps each)
 
 
+def _denormal_survives() -> bool:
+    """Whether this process's arithmetic keeps a denormal float (IEEE) or flushes it to zero."""
+    return bool((torch.full((4,), torch.finfo(torch.float32).tiny) / 4).ne(0).all())
+
+
+def test_flush_denormal_is_set_for_the_run_and_reset_by_the_next(tmp_path, monkeypatch):
+    """flush_denormal=true: the run's updates flush denormals to zero (docs/measurements.md: Adam's moments of
+    dead units decay there and slow every op on them); the next run, on the default, gets IEEE arithmetic back."""
+    from srdcil.updater import DCILUpdater
+
+    seen = []
+    step = DCILUpdater.step
+    monkeypatch.setattr(DCILUpdater, "step", lambda self, b: (seen.append(_denormal_survives()), step(self, b))[1])
+    tiny = ["network.hidden=[32,32]", "collector.total_frames=40", "collector.init_random_frames=20",
+            "optim.batch_size=32", "eval.interval=100000", "progress=false", "logger.backend=", "method=vc"]
+    try:
+        r = train(config("sr_dcil_fetch", tiny + ["flush_denormal=true"]), run_dir=tmp_path / "ftz")
+        assert r["flush_denormal"] is True and seen and not any(seen)
+        seen.clear()
+        r = train(config("sr_dcil_fetch", tiny), run_dir=tmp_path / "ieee")
+        assert r["flush_denormal"] is False and seen and all(seen)
+    finally:
+        torch.set_flush_denormal(False)
+
+
 def test_stop_after_success_then_auto_resume_skips_the_finished_run(tmp_path, wiggle_demo):
     """A run continues ``stop_after_success`` env steps after its first full-chain success, then
     stops; starting it again with ``resume=auto`` finds its final checkpoint and does nothing."""
