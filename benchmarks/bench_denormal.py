@@ -64,18 +64,18 @@ def main():
     torch.set_num_threads(1)
     from srdcil.training import build_run, update_round
 
-    common = ["logger.backend=", "progress=false", "eval.plot=false", "eval.save_policy=false"]
+    common = ["progress=false", "eval.plot=false", "eval.save_policy=false"]
     if a.checkpoint:
         ckpt = Path(a.checkpoint).resolve()
         cfg = OmegaConf.load(ckpt.parent / "config.yaml")
         base = recipe_config(a.recipe)  # today's schema, so that keys added since the run have their defaults
         OmegaConf.set_struct(base, False)
         cfg = OmegaConf.merge(base, cfg, OmegaConf.from_dotlist(
-            [f"resume={ckpt}", "resume_allow_changes=true", *common[1:], *a.set]))
+            [f"resume={ckpt}", "resume_allow_changes=true", *common, *a.set]))
         cfg.logger.backend = ""
     else:
         cfg = recipe_config(a.recipe, [f"method={a.variant}", "collector.init_random_frames=300",
-                                       "collector.total_frames=400", *common, *a.set])
+                                       "collector.total_frames=400", "logger.backend=", *common, *a.set])
     with tempfile.TemporaryDirectory() as d:
         run = build_run(cfg, Path(d))
         if not a.checkpoint:  # random steps to sample from, a few updates to create Adam's moments

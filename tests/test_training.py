@@ -119,12 +119,14 @@ def test_recipe_script_runs_from_the_command_line(tmp_path, wiggle_demo):
     assert (out / "config.yaml").exists()
 
 
+# Fetch at a tiny budget and nets, so that it fits in CI
+FETCH_TINY = ["network.hidden=[32,32]", "collector.total_frames=40", "collector.init_random_frames=20",
+              "optim.batch_size=32", "eval.interval=100000", "progress=false", "logger.backend=", "method=vc"]
+
+
 def test_fetch_recipe_smoke(tmp_path):
     """Fetch: the recipe builds and trains on defaults (tiny budget and nets so it fits in CI)."""
-    cfg = config("sr_dcil_fetch", ["network.hidden=[32,32]", "collector.total_frames=40",
-                                   "collector.init_random_frames=20", "optim.batch_size=32",
-                                   "eval.interval=100000", "progress=false", "logger.backend=",
-                                   "method=vc"])
+    cfg = config("sr_dcil_fetch", FETCH_TINY)
     r = train(cfg, run_dir=tmp_path)
     assert r["env_steps"] == 40 and r["updates"] > 0
     assert len(r["ags_thresholds"]) == 12  # goals of the whole shipped demo (ε 0.5, 10-25 steps each)
@@ -143,13 +145,11 @@ def test_flush_denormal_is_set_for_the_run_and_reset_by_the_next(tmp_path, monke
     seen = []
     step = DCILUpdater.step
     monkeypatch.setattr(DCILUpdater, "step", lambda self, b: (seen.append(_denormal_survives()), step(self, b))[1])
-    tiny = ["network.hidden=[32,32]", "collector.total_frames=40", "collector.init_random_frames=20",
-            "optim.batch_size=32", "eval.interval=100000", "progress=false", "logger.backend=", "method=vc"]
     try:
-        r = train(config("sr_dcil_fetch", tiny + ["flush_denormal=true"]), run_dir=tmp_path / "ftz")
+        r = train(config("sr_dcil_fetch", FETCH_TINY + ["flush_denormal=true"]), run_dir=tmp_path / "ftz")
         assert r["flush_denormal"] is True and seen and not any(seen)
         seen.clear()
-        r = train(config("sr_dcil_fetch", tiny), run_dir=tmp_path / "ieee")
+        r = train(config("sr_dcil_fetch", FETCH_TINY), run_dir=tmp_path / "ieee")
         assert r["flush_denormal"] is False and seen and all(seen)
     finally:
         torch.set_flush_denormal(False)
