@@ -431,3 +431,30 @@ def test_the_library_never_imports_the_analysis():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=Path(__file__).resolve().parents[1]).stdout
     assert out.strip() == "[]"
+
+
+def test_value_probe_table_and_failure_signature(tmp_path):
+    """summary.md tabulates each run's probe (peak, last) and counts the finished unsolved runs whose
+    Q(s, pi(s)) ends below V_demo / 2: a solved run or a run whose Q stays up is not counted."""
+    def run(name, seed, goals, q, v=None):
+        d = tmp_path / "r" / name
+        _write_run(d, [(1000 * i, g, int(g == N), int(g == N)) for i, g in enumerate(goals)],
+                   {"seed": seed, "method": name.rsplit("_s", 1)[0], "collector": {"total_frames": 5000}},
+                   {"env_steps": 1000 * (len(goals) - 1)})
+        lines = (d / "metrics.jsonl").read_text().splitlines()
+        recs = [dict(json.loads(l), **{"probe/grasp/v_demo": 2.0, "probe/grasp/q_pi": qi},
+                     **({} if v is None else {"probe/grasp/v": v})) for l, qi in zip(lines, q)]
+        (d / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in recs) + "\n")
+
+    run("vc_s0", 0, [0, 1, 2, 2], [0.0, 3.0, 1.0, 0.2], v=2.1)   # failure: unsolved, Q falls to 0.2 < 1.0
+    run("vc_s1", 1, [0, 1, 2, N], [0.0, 3.0, 0.5, 0.1], v=2.0)   # solved: not a failure, however low Q ends
+    run("db_s0", 0, [0, 1, 2, 3], [0.0, 9.0, 30.0, 20.0])        # unsolved but Q high: not the signature
+    out = report.write_report(tmp_path / "r", out=tmp_path / "o", n_goals=N, reps=10, verbose=False)
+    md = (tmp_path / "o" / "summary.md").read_text()
+    assert "| `vc` | 0 | best 2/5 | 2.00 | 3.00 (1k) | 0.20 | 2.10 |" in md
+    assert "| `db` | 0 | best 3/5 | 2.00 | 30.00 (2k) | 20.00 | — |" in md
+    assert "`db` 0/1" in md and "`vc` 1/2" in md
+    assert out["probe"]["failure_signature"] == {"db": {"runs": 0, "finished": 1}, "vc": {"runs": 1, "finished": 2}}
+    # a probe no run logged: no section
+    report.write_report(tmp_path / "r", out=tmp_path / "p", n_goals=N, reps=10, verbose=False, probe="g7")
+    assert "Value probe" not in (tmp_path / "p" / "summary.md").read_text()

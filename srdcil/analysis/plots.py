@@ -605,10 +605,9 @@ def plot_value_probe(run_dirs: Sequence[str | Path], out: str | Path, probe: str
 
 def _probe_names(run_dir) -> list[str]:
     """The probe names (``probe/<name>/...``) in a run's metrics.jsonl."""
-    from srdcil.analysis.runs import read_metrics
+    from srdcil.analysis.runs import probe_names, read_metrics
 
-    rows, _ = read_metrics(run_dir)
-    return sorted({k.split("/")[1] for r in rows for k in r if k.startswith("probe/")})
+    return probe_names(read_metrics(run_dir)[0])
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -52,6 +52,13 @@ lies somewhere between the last solve and beyond the budget). Below the table, a
 gives each run's first chain success, first strict success and best goals: what the counts and
 medians are made of.
 
+Value probe (summary.md, last section)
+--------------------------------------
+When the runs logged a value probe (``--probe``, default ``grasp``: Fetch's last demo state before the
+grasp), a table gives each run's V_demo, the peak and last Q(s, pi(s)) and the last V there, and counts per
+method the finished runs that did not solve and end with Q(s, pi(s)) < V_demo / 2: the paper's VC failure
+signature (V may sit at V_demo while the policy's Q stays low).
+
 Interval estimates (rliable, Agarwal et al. 2021)
 -------------------------------------------------
 The score of a run at budget b is its normalised goals at its last evaluation at or before b (LOCF).
@@ -84,7 +91,7 @@ from srdcil.analysis.stats import (LOCF_RULE, profile_taus, rliable_error, rliab
 from srdcil.run_log import strict_json
 
 __all__ = ["DEFAULT_BUDGETS", "DEFAULT_SMOOTH", "CSV_COLUMNS", "write_runs_csv", "summary_markdown",
-           "per_seed_markdown", "write_report", "parse_steps", "main"]
+           "per_seed_markdown", "probe_markdown", "write_report", "parse_steps", "main"]
 
 DEFAULT_BUDGETS = (25_000, 50_000, 75_000, 100_000)
 DEFAULT_SMOOTH = 5  # evaluations averaged per run in the curves (a) and (c) of ablation.png
@@ -186,6 +193,43 @@ def per_seed_markdown(by_method: dict, summary: dict, budget) -> str:
     return "\n".join(lines)
 
 
+def probe_markdown(by_method: dict, probe: str) -> tuple[str, dict] | None:
+    """The value probe ``probe`` of every run (the paper's Fig. 5 quantities at the end of each run) and, per
+    method, how many finished unsolved runs end with Q(s, pi(s)) below half of V_demo there; None when no
+    run logged the probe."""
+    if not any(r["probes"].get(probe) for runs in by_method.values() for r in runs):
+        return None
+    f = lambda x: "—" if x is None else f"{round(x, 2) or 0.0:.2f}"  # noqa: E731 (no "-0.00")
+    lines = [f"| method | seed | outcome | V_demo | Q(s, π(s)): peak (env steps) | Q(s, π(s)): last | V: last |",
+             "|---|---|---|---|---|---|---|"]
+    low = {}
+    for m, runs in by_method.items():
+        for r in sorted(runs, key=lambda r: (r["seed"] is None, r["seed"])):
+            p = r["probes"].get(probe)
+            solved = r["first_chain_success_step"] is not None
+            outcome = (f"solved at {fmt_steps(r['first_chain_success_step'])}" if solved else
+                       f"best {r['best_goals_reached']}/{r['n_goals']}"
+                       + ("" if r["status"] == "finished" else f", running at {fmt_steps(r['last_env_steps'])}"))
+            if p is None:
+                lines.append(f"| `{m}` | {r['seed']} | {outcome} | — | — | — | — |")
+                continue
+            lines.append(f"| `{m}` | {r['seed']} | {outcome} | {f(p['v_demo'])} | {f(p['q_pi_peak'])} "
+                         f"({fmt_steps(p['q_pi_peak_step'])}) | {f(p['q_pi_last'])} | {f(p['v_last'])} |")
+            if r["status"] == "finished":
+                k, n = low.get(m, (0, 0))
+                low[m] = (k + (not solved and p["q_pi_last"] < 0.5 * p["v_demo"]), n + 1)
+    text = (f"## Value probe at the demo state '{probe}' (the paper's Fig. 5)\n\n" + "\n".join(lines) + "\n\n"
+            "- At each evaluation: V_demo(s) (the demo's own discounted return from s), Q(s, π(s)) (the live "
+            "critic, min over critics, deterministic action) and V(s) (methods with a V network). Peak and last "
+            "over the run's evaluations (`python -m srdcil.plots value-probe RUN ...` draws them).\n"
+            "- The paper's VC failure signature, per method: finished runs that did not reach the final goal and "
+            "end with Q(s, π(s)) < V_demo / 2 at this state: "
+            + ", ".join(f"`{m}` {k}/{n}" for m, (k, n) in low.items()) + ".\n")
+    return text, {"name": probe, "failure_signature": {m: {"runs": k, "finished": n} for m, (k, n) in low.items()},
+                  "runs": [{"method": r["method"], "seed": r["seed"], **r["probes"][probe]}
+                           for runs in by_method.values() for r in runs if r["probes"].get(probe)]}
+
+
 def _notes(summary: dict, budget) -> list[str]:
     """The summary's remarks on runs with a smaller budget and on runs in progress."""
     notes = []
@@ -231,12 +275,13 @@ def _interval_figures(by_method: dict, runs, budgets, out: Path, files: dict, re
 
 def write_report(results_dir, out=None, budget=None, budgets=DEFAULT_BUDGETS, n_goals: int = DEFAULT_N_GOALS,
                  methods=None, grid_step: int = 1000, reps: int = 2000, seed: int = 0, verbose: bool = True,
-                 label=("method",), smooth: int = DEFAULT_SMOOTH) -> dict:
+                 label=("method",), smooth: int = DEFAULT_SMOOTH, probe: str = "grasp") -> dict:
     """Read the runs under ``results_dir`` (one directory, or a list of them: one table) and write the
     report files into ``out`` (default: the (first) results directory).
 
     ``smooth``: the curves (a) and (c) of ablation.png show each run's mean over its last ``smooth``
-    evaluations (1: the raw evaluations); no other output depends on it.
+    evaluations (1: the raw evaluations); no other output depends on it. ``probe``: the value probe
+    (``probe/<name>/*`` in metrics.jsonl) whose end values summary.md tabulates, when runs logged it.
 
     Returns the summary (as written to summary.json) plus ``files``: the paths written.
     """
@@ -267,9 +312,11 @@ def write_report(results_dir, out=None, budget=None, budgets=DEFAULT_BUDGETS, n_
     table, explain = summary_markdown(summary, budget, budgets, iqm is not None, _notes(summary, budget))
     files["summary.md"] = out / "summary.md"
     per_seed = per_seed_markdown(by_method, summary, budget)
+    probed = probe_markdown(by_method, probe)
     files["summary.md"].write_text(f"# Ablation summary: {name}\n\n{table}\n\n{explain}\n\n"
                                    f"## Per seed\n\n{per_seed}\n\n- *running*: no result.json yet (in "
-                                   "progress or interrupted); its best goals are those of its evaluations so far.\n")
+                                   "progress or interrupted); its best goals are those of its evaluations so far.\n"
+                                   + ("" if probed is None else "\n" + probed[0]))
     say(table)
     say(explain)
 
@@ -277,7 +324,7 @@ def write_report(results_dir, out=None, budget=None, budgets=DEFAULT_BUDGETS, n_
         "results_dir": str(dirs[0]) if len(dirs) == 1 else [str(d) for d in dirs], "budget": budget,
         "budgets": budgets, "grid_step": grid_step,
         "bootstrap": {"reps": reps, "seed": seed, "confidence": 0.95} if iqm is not None else None,
-        "locf_rule": LOCF_RULE, "methods": summary,
+        "locf_rule": LOCF_RULE, "methods": summary, **({} if probed is None else {"probe": probed[1]}),
         "runs": [{c: (os.path.relpath(r["run_dir"], out.resolve()) if c == "run_dir" else r[c])
                   for c in CSV_COLUMNS} for r in runs]})
     files["summary.json"] = out / "summary.json"
@@ -318,6 +365,9 @@ def _parser() -> argparse.ArgumentParser:
                         f"{DEFAULT_SMOOTH}; 1 = raw); the tables do not depend on it")
     p.add_argument("--reps", type=int, default=2000, help="bootstrap replications (default 2000)")
     p.add_argument("--seed", type=int, default=0, help="bootstrap seed (default 0)")
+    p.add_argument("--probe", default="grasp",
+                   help="value probe tabulated in summary.md when the runs logged it (default: grasp, Fetch's "
+                        "last demo state before the grasp)")
     p.add_argument("--label", default="method",
                    help="config entries that name a run's group, comma-separated (default: method; "
                         "e.g. method,precision)")
@@ -332,7 +382,7 @@ def main(argv=None) -> None:
     dirs = a.results_dir[0] if len(a.results_dir) == 1 else a.results_dir
     write_report(dirs, out=a.out, budget=a.budget, budgets=budgets, n_goals=a.n_goals,
                  methods=split(a.methods) if a.methods else None, grid_step=a.grid_step, reps=a.reps, seed=a.seed,
-                 label=tuple(k for k in a.label.split(",") if k), smooth=a.smooth)
+                 label=tuple(k for k in a.label.split(",") if k), smooth=a.smooth, probe=a.probe)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,7 @@ from srdcil.analysis.stats import run_outcomes
 
 __all__ = ["DEFAULT_N_GOALS", "PREFERRED_ORDER", "load_yaml", "read_config", "read_metrics", "read_result",
            "as_int", "config_get", "read_run", "wall_to_solve", "find_run_dirs", "method_order", "as_dirs",
-           "collect", "read_curves"]
+           "collect", "read_curves", "probe_names", "probe_summary"]
 
 DEFAULT_N_GOALS = 17  # goals of a run whose metrics do not record it (the Dubins maze)
 PREFERRED_ORDER = ("vanilla", "db", "db_ags", "db_ags_paper", "db_ags_recompute", "vc", "vc_ags", "vc_ags_paper",
@@ -186,7 +186,30 @@ def read_run(path, default_n_goals: int = DEFAULT_N_GOALS, label=("method",)) ->
             "wall_s": round(float(wall), 1) if isinstance(wall, (int, float)) and math.isfinite(wall) else None,
             # older result.json files (no wall_s_this_leg) give only the last leg's wall time after a resume
             "wall_all_legs": result is not None and "wall_s_this_leg" in result,
-            "run_dir": path, "evals": evals, "result": result, "warnings": warnings}
+            "run_dir": path, "evals": evals, "result": result, "warnings": warnings,
+            "probes": {name: probe_summary(records, name) for name in probe_names(records)}}
+
+
+def probe_names(records) -> list[str]:
+    """The value probes (``probe/<name>/<quantity>``) that metrics records (:func:`read_metrics`) hold."""
+    return sorted({k.split("/")[1] for rec in records for k in rec if k.startswith("probe/") and k.count("/") == 2})
+
+
+def probe_summary(records, name: str) -> dict | None:
+    """What the value probe ``name`` (``probe/<name>/{v_demo,q_pi,v}``, one per evaluation) says over a run:
+    ``q_pi_peak`` and ``q_pi_peak_step`` (the largest Q(s, pi(s)) and the env steps of its first evaluation),
+    ``q_pi_last``, ``v_last`` (None without a V network), ``v_demo`` and ``n`` (evaluations with the probe);
+    None when no evaluation logged it."""
+    rows = sorted((r for r in records if isinstance(r.get(f"probe/{name}/q_pi"), (int, float))
+                   and "env_steps" in r), key=lambda r: r["env_steps"])
+    if not rows:
+        return None
+    q = [float(r[f"probe/{name}/q_pi"]) for r in rows]
+    peak = max(range(len(q)), key=lambda i: (q[i], -i))
+    v = rows[-1].get(f"probe/{name}/v")
+    return {"n": len(rows), "q_pi_peak": q[peak], "q_pi_peak_step": int(rows[peak]["env_steps"]),
+            "q_pi_last": q[-1], "v_last": float(v) if isinstance(v, (int, float)) else None,
+            "v_demo": float(rows[-1][f"probe/{name}/v_demo"])}
 
 
 def wall_to_solve(rows, first_chain, result) -> dict:
