@@ -200,7 +200,7 @@ def probe_markdown(by_method: dict, probe: str) -> tuple[str, dict] | None:
     if not any(r["probes"].get(probe) for runs in by_method.values() for r in runs):
         return None
     f = lambda x: "—" if x is None else f"{round(x, 2) or 0.0:.2f}"  # noqa: E731 (no "-0.00")
-    lines = [f"| method | seed | outcome | V_demo | Q(s, π(s)): peak (env steps) | Q(s, π(s)): last | V: last |",
+    lines = ["| method | seed | outcome | V_demo | Q(s, π(s)): peak (env steps) | Q(s, π(s)): last | V: last |",
              "|---|---|---|---|---|---|---|"]
     low = {}
     for m, runs in by_method.items():
