@@ -3,7 +3,8 @@
 * ``config.yaml`` -- the composed config;
 * ``metrics.jsonl`` -- one line per evaluation (with the training losses of that round), the file
   the report reads; a resumed run first drops the lines written after its checkpoint;
-* ``result.json`` -- strict JSON (NaN written as null), only when the run has finished;
+* ``result.json`` -- strict JSON (NaN written as null), only when the run has finished, with the
+  precision it used and where its last leg ran (``machine``: CPU model and bf16/AMX flags, torch);
 * a torchrl logger (csv / wandb / tensorboard) for the per-round scalars.
 
 A failed write (e.g. a full disk) raises :class:`UserError` naming the file.
@@ -20,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from srdcil.errors import UserError
 
-__all__ = ["RunLog", "strict_json"]
+__all__ = ["RunLog", "machine_info", "strict_json"]
 
 
 def strict_json(x):
@@ -32,6 +33,35 @@ def strict_json(x):
     if isinstance(x, (list, tuple)):
         return [strict_json(v) for v in x]
     return x
+
+
+def machine_info(device="cpu") -> dict:
+    """Where this leg of a run ran: CPU model (family/model, as a VM may hide the name), the bf16 / AMX /
+    AVX-512 flags that decide ``precision=auto`` and the speed, cores, torch threads and versions."""
+    import platform
+
+    import torch
+
+    fields: dict[str, str] = {}
+    try:
+        with open("/proc/cpuinfo") as f:
+            for ln in f:
+                if not ln.strip():
+                    break  # the first processor is enough
+                k, _, v = ln.partition(":")
+                fields.setdefault(k.strip(), v.strip())
+    except OSError:
+        pass
+    flags = set(fields.get("flags", "").split())
+    info = {"cpu": fields.get("model name") or platform.processor() or platform.machine(),
+            "cpu_family_model": (f"{fields['cpu family']}/{fields['model']}"
+                                 if "cpu family" in fields and "model" in fields else None),
+            "cpu_flags": sorted(flags & {"avx2", "avx512f", "avx512_bf16", "amx_bf16", "amx_tile"}),
+            "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+            "torch": torch.__version__, "python": platform.python_version()}
+    if str(device).startswith("cuda") and torch.cuda.is_available():
+        info["gpu"] = torch.cuda.get_device_name(torch.device(device))
+    return info
 
 
 class RunLog:

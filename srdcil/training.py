@@ -31,7 +31,7 @@ from srdcil.errors import NonFiniteLossError
 from srdcil.evaluation import ActorAverages, Evaluator, ValueProbe
 from srdcil.methods import get_method
 from srdcil.policy import policy_state
-from srdcil.run_log import RunLog
+from srdcil.run_log import RunLog, machine_info
 from srdcil.rundir import RunDir
 from srdcil.tasks import make_task
 from srdcil.transforms import find_goal_transform
@@ -306,6 +306,7 @@ class _Run:
                                                  if p.t_warm is not None and p.t_end > p.t_warm else None),
                 "precision": self.updater.precision,  # as resolved on this machine (precision=auto)
                 "flush_denormal": bool(c.get("flush_denormal", False)),
+                "machine": machine_info(c.get("device", "cpu")),  # this leg's (a resumed run may have moved)
                 "ags_thresholds": self.gst.ags_thresholds.tolist()}
 
 

@@ -151,6 +151,12 @@ def test_flush_denormal_is_set_for_the_run_and_reset_by_the_next(tmp_path, monke
         seen.clear()
         r = train(config("sr_dcil_fetch", FETCH_TINY), run_dir=tmp_path / "ieee")
         assert r["flush_denormal"] is False and seen and all(seen)
+        # result.json says where the run ran: the flags that decide precision=auto among them
+        from srdcil.updater import bf16_supported
+
+        m = json.loads((tmp_path / "ieee" / "result.json").read_text())["machine"]
+        assert m["cpu"] and m["torch"] == torch.__version__ and m["torch_threads"] == torch.get_num_threads()
+        assert bf16_supported() == bool({"avx512_bf16", "amx_bf16"} & set(m["cpu_flags"]))
     finally:
         torch.set_flush_denormal(False)
 
