@@ -314,3 +314,10 @@ def test_value_probe_reads_the_probe_over_training_and_marks_the_first_success(t
     tall = plt.imread(plots.main(["value-probe", *[str(run)] * 5, "--cols", "2", "--out", str(tmp_path / "p5.png")]))
     wide = plt.imread(tmp_path / "probe.png")
     assert tall.shape[0] > 2.5 * wide.shape[0] and tall.shape[1] == wide.shape[1]
+    # one probe per run (a maze run at g1 beside a Fetch run at grasp); a probe a run did not log names the run
+    assert _is_png(plots.main(["value-probe", str(run), str(run), "--probe", "g1", "grasp",
+                               "--out", str(tmp_path / "pair.png")]))
+    with pytest.raises(ValueError, match="one per run: 2 probes for 3 runs"):
+        plots.plot_value_probe([run] * 3, tmp_path / "x.png", probe=["g1", "grasp"])
+    with pytest.raises(ValueError, match="vc_s0: no probe/g7"):
+        plots.plot_value_probe([run, run], tmp_path / "x.png", probe=["grasp", "g7"])

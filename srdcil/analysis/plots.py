@@ -65,7 +65,7 @@ CLI::
     python -m srdcil.plots chain CKPT [CKPT ...] [--json OUT.json]
 
     python -m srdcil.plots run-curve RUN_DIR [RUN_DIR ...] [--keys eval/goals_reached ...] --out curve.png
-    python -m srdcil.plots value-probe RUN_DIR [RUN_DIR ...] [--probe grasp] --out probe.png
+    python -m srdcil.plots value-probe RUN_DIR [RUN_DIR ...] [--probe grasp | --probe P1 P2 ...] --out probe.png
     python -m srdcil.plots value-maps CKPT [CKPT ...] [--goal-index 3|stall] [--use-v] [--rollout] --out value_maps.png
     python -m srdcil.plots ags-contour CKPT --goal-index 3 --out ags.png
     python -m srdcil.plots vc-diagnostic CKPT --out vc_diag.png
@@ -561,15 +561,25 @@ def value_probe_series(run_dir: str | Path, probe: str = "grasp") -> dict:
     return {**out, "goals": (steps, goals), "n_goals": n, "first_success": first}
 
 
-def plot_value_probe(run_dirs: Sequence[str | Path], out: str | Path, probe: str = "grasp", cols: int = 4) -> Path:
+def plot_value_probe(run_dirs: Sequence[str | Path], out: str | Path, probe: str | Sequence[str] = "grasp",
+                     cols: int = 4) -> Path:
     """Fig. 5 over training: V_demo, V (runs with a V network) and Q(s, π(s)) of the demo state ``probe``
     against env steps, one panel per run (at most ``cols`` panels a row), from the runs' ``metrics.jsonl``
-    (``probe/<probe>/*``)."""
+    (``probe/<probe>/*``). ``probe`` is one name for every run or one per run (e.g. a maze run at ``g8``
+    beside a Fetch run at ``grasp``)."""
     import matplotlib.pyplot as plt
 
     if cols < 1:
         raise ValueError(f"cols must be at least 1, got {cols}")
-    series = [(Path(d), value_probe_series(d, probe)) for d in run_dirs]
+    probes = [probe] if isinstance(probe, str) else list(probe)
+    if len(probes) == 1:
+        probes *= len(run_dirs)
+    if len(probes) != len(run_dirs):
+        raise ValueError(f"give one probe for every run or one per run: {len(probes)} probes for "
+                         f"{len(run_dirs)} runs")
+    series = [(Path(d), value_probe_series(d, p)) for d, p in zip(run_dirs, probes)]
+    # runs from several series (folders) are named with their folder: 'dubins_vc_probe/vc_ags_s0'
+    named = {d.parent.resolve() for d, _ in series}
     ncols = min(len(series), cols)
     nrows = -(-len(series) // ncols)
     fig, axes = plt.subplots(nrows, ncols, figsize=(5.2 * ncols, 3.8 * nrows), squeeze=False)
@@ -577,14 +587,14 @@ def plot_value_probe(run_dirs: Sequence[str | Path], out: str | Path, probe: str
         ax.set_visible(False)
     styles = {"v_demo": ("V_demo(s) (return of the demo)", "black", "--"), "v": ("learned V(s)", "tab:blue", "-"),
               "q_pi": ("Q(s, π(s))", "tab:orange", "-")}
-    for ax, (d, c) in zip(axes.flat, series):
+    for ax, (d, c), p in zip(axes.flat, series, probes):
         for k, (label, color, ls) in styles.items():
             if k in c:
                 ax.plot(np.asarray(c[k][0]) / 1000, c[k][1], ls, color=color, lw=1.5, label=label)
         ax.set_xlabel("env steps (thousands)")
-        ax.set_ylabel(f"value at the demo state '{probe}'")
+        ax.set_ylabel(f"value at the demo state '{p}'")
         ax.grid(alpha=0.3)
-        title = d.name
+        title = f"{d.parent.name}/{d.name}" if len(named) > 1 else d.name
         steps, goals = c["goals"]
         if steps:
             tw = ax.twinx()
@@ -656,9 +666,9 @@ def _parser() -> argparse.ArgumentParser:
     vp = sub.add_parser("value-probe", help="Fig. 5 over training: V_demo, V and Q(s, π(s)) of one demo state vs "
                                             "env steps, one panel per run (metrics.jsonl)")
     vp.add_argument("runs", nargs="+", help="run directories (with a metrics.jsonl)")
-    vp.add_argument("--probe", default="grasp",
+    vp.add_argument("--probe", nargs="+", default=["grasp"],
                     help="the demo state: 'grasp' (Fetch's last demo state before the grasp) or g<i> (goal i's "
-                         "first demo state); default grasp")
+                         "first demo state); one for every run or one per run; default grasp")
     vp.add_argument("--out", default="value_probe.png", help="output PNG path")
     vp.add_argument("--cols", type=int, default=4, help="panels per row (default 4)")
     return p
