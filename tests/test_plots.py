@@ -321,3 +321,14 @@ def test_value_probe_reads_the_probe_over_training_and_marks_the_first_success(t
         plots.plot_value_probe([run] * 3, tmp_path / "x.png", probe=["g1", "grasp"])
     with pytest.raises(ValueError, match="vc_s0: no probe/g7"):
         plots.plot_value_probe([run, run], tmp_path / "x.png", probe=["grasp", "g7"])
+    # where the run logs eval/chain_success, the first success is the final goal reached (here with a goal
+    # skipped by AGS, 2 of 3 for real), not the first evaluation with every goal reached
+    ags = tmp_path / "vc_ags_s0"
+    ags.mkdir()
+    rows = [{**r, "eval/chain_success": float(r["env_steps"] >= 4000)} for r in rows if "eval/n_goals" in r]
+    rows[1]["eval/goals_reached"] = 2
+    (ags / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    assert plots.value_probe_series(ags)["first_success"] == 4000
+    rows[1]["eval/chain_success"] = 0.0
+    (ags / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    assert plots.value_probe_series(ags)["first_success"] == 6000

@@ -548,16 +548,21 @@ def plot_run_curves(run_dirs: Sequence[str | Path], out: str | Path, keys: Seque
 def value_probe_series(run_dir: str | Path, probe: str = "grasp") -> dict:
     """The curves of :func:`plot_value_probe` for one run: ``{"v_demo" | "v" | "q_pi": (env steps, values)}``
     for the entries the run logged, ``goals`` (env steps, goals reached) of its evaluations, ``n_goals`` and
-    ``first_success`` (the first evaluation that reached every goal's final one, or None)."""
+    ``first_success`` (the first evaluation that reached the final goal, ``eval/chain_success``; in older metrics
+    without it, the first that reached every goal; or None)."""
     names = ("v_demo", "v", "q_pi")
-    c = read_curves(run_dir, [*(f"probe/{probe}/{k}" for k in names), "eval/goals_reached", "eval/n_goals"])
+    c = read_curves(run_dir, [*(f"probe/{probe}/{k}" for k in names), "eval/goals_reached", "eval/n_goals",
+                              "eval/chain_success"])
     out = {k: c[f"probe/{probe}/{k}"] for k in names if f"probe/{probe}/{k}" in c}
     if not out:
         raise ValueError(f"{run_dir}: no probe/{probe}/* in metrics.jsonl (probes this run logs: "
                          f"{', '.join(_probe_names(run_dir)) or 'none'})")
     steps, goals = c.get("eval/goals_reached", ([], []))
     n = int(c["eval/n_goals"][1][-1]) if "eval/n_goals" in c else None
-    first = next((s for s, g in zip(steps, goals) if g >= n), None) if n else None
+    if "eval/chain_success" in c:  # the final goal reached, goals skipped by AGS or not (the paper's success)
+        first = next((s for s, ok in zip(*c["eval/chain_success"]) if ok >= 1), None)
+    else:  # older metrics: every goal reached
+        first = next((s for s, g in zip(steps, goals) if g >= n), None) if n else None
     return {**out, "goals": (steps, goals), "n_goals": n, "first_success": first}
 
 
