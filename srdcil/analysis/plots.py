@@ -89,7 +89,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-from srdcil.analysis.runs import read_curves
+from srdcil.analysis.runs import read_curves, read_run
 from srdcil.policy import CheckpointAgent, load_checkpoint_agent
 
 __all__ = [
@@ -559,10 +559,10 @@ def value_probe_series(run_dir: str | Path, probe: str = "grasp") -> dict:
                          f"{', '.join(_probe_names(run_dir)) or 'none'})")
     steps, goals = c.get("eval/goals_reached", ([], []))
     n = int(c["eval/n_goals"][1][-1]) if "eval/n_goals" in c else None
-    if "eval/chain_success" in c:  # the final goal reached, goals skipped by AGS or not (the paper's success)
-        first = next((s for s, ok in zip(*c["eval/chain_success"]) if ok >= 1), None)
-    else:  # older metrics: every goal reached
-        first = next((s for s, g in zip(steps, goals) if g >= n), None) if n else None
+    # the run reader's outcomes: the final goal reached (goals skipped by AGS or not, the paper's success);
+    # older metrics without eval/chain_success: every goal reached
+    o = read_run(run_dir)
+    first = o["first_chain_success_step"] if "eval/chain_success" in c else o["first_strict_success_step"]
     return {**out, "goals": (steps, goals), "n_goals": n, "first_success": first}
 
 
